@@ -1,0 +1,38 @@
+# bid-sim: every target wraps the `bid` command line.
+PYTHON ?= python3.11
+VENV := .venv
+BID := $(VENV)/bin/bid
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+TOWN ?= 02
+DENSITY ?= normal
+
+.PHONY: demo test bench towns clean lint
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BID) towns
+	$(BID) episode --town $(TOWN) --density $(DENSITY) --route 0 --seed 0
+
+test: $(STAMP)
+	$(PY) -m pytest tests
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_world.py
+
+towns: $(STAMP)
+	$(BID) towns
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check bid_sim bid_model tests benchmarks
+
+clean:
+	rm -rf build results runs .pytest_cache

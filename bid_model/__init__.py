@@ -1,0 +1,1 @@
+"""The BID network, its data pipeline, training and closed-loop policy."""

@@ -1,0 +1,272 @@
+"""One episode: one route in one town under one weather, density and seed, with one agent."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from bid_sim import __version__
+from bid_sim import metrics as m
+from bid_sim.agents import Agent, EpisodeInfo, Observation
+from bid_sim.ego import EgoParams, EgoState, step
+from bid_sim.errors import BidError
+from bid_sim.infractions import DEVIATION_M, Monitor
+from bid_sim.metrics import Infraction
+from bid_sim.routes import COMMAND_NAMES, Route, RouteSpec, plan, plan_spec, road_graph, route_by_index
+from bid_sim.snapshot import OFF, EgoView, Snapshot, light_code
+from bid_sim.town_map import load_town_map
+from bid_sim.towns import Town, resolve_town
+from bid_sim.weather import check_weather
+from bid_sim.world import DT_S, World
+
+log = logging.getLogger(__name__)
+
+TIMEOUT_SPEED_MPS = 5.0 / 3.6
+TIMEOUT_EXTRA_S = 20.0
+GOAL_RADIUS_M = 10.0
+REPLAN_LATERAL_M = 6.0  # farther than this from the route on another lane: re-plan
+
+
+@dataclass
+class EpisodeResult:
+    """Everything an episode produced: ids, status, distances, infractions and metrics."""
+
+    town: str
+    route_index: int
+    weather: str
+    density: str
+    seed: int
+    agent: str
+    status: str  # completed | blocked | route_deviation | timeout
+    steps: int
+    time_s: float
+    route_length_m: float
+    completed_m: float
+    driven_m: float
+    outside_lane_m: float
+    replans: int
+    infractions: list[Infraction] = field(default_factory=list)
+    metrics: dict[str, float] = field(default_factory=dict)
+    version: str = __version__
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["infractions"] = [i.to_dict() for i in self.infractions]
+        return d
+
+    def row(self) -> dict[str, Any]:
+        """A flat row for metrics.aggregate."""
+        return {"town": self.town, "route": self.route_index, "weather": self.weather,
+                "density": self.density, "seed": self.seed, **self.metrics}
+
+
+class Progress:
+    """Route progress with re-planning: completed distance is measured on the first route."""
+
+    def __init__(self, route: Route):
+        self.route = route
+        self.first_length_m = route.length_m
+        self.offset_m = 0.0  # completed distance at the current route's start
+        self.s_m = 0.0
+        self.lateral_m = 0.0
+        self.heading_rad = 0.0
+        self.completed_m = 0.0
+
+    def update(self, x: float, y: float) -> float:
+        """Projects the ego onto the route; returns the progress gained this step (m)."""
+        s, lat, heading = self.route.project(x, y, self.s_m)
+        gained = max(0.0, s - self.s_m) if abs(lat) < DEVIATION_M else 0.0
+        self.s_m = max(self.s_m, s) if abs(lat) < DEVIATION_M else self.s_m
+        self.lateral_m, self.heading_rad = lat, heading
+        before = self.completed_m
+        self.completed_m = min(self.first_length_m, max(self.completed_m, self.offset_m + self.s_m))
+        return gained if self.completed_m > before or gained == 0.0 else gained
+
+    def replace(self, route: Route) -> None:
+        self.offset_m = self.first_length_m - route.length_m
+        self.route = route
+        self.s_m = 0.0
+
+
+def run_episode(
+    town: Town | str,
+    route: int | RouteSpec,
+    weather: str,
+    density: str,
+    seed: int,
+    agent: Agent,
+    recorder=None,
+    renderer=None,
+    replan: bool = False,
+    max_steps: int | None = None,
+    params: EgoParams = EgoParams(),
+    on_start=None,
+) -> EpisodeResult:
+    """Runs one episode to its end and scores it (DESIGN.md section 7).
+
+    replan: on leaving the route, plan a new one from where the ego is and correct the
+    command (evaluation, as in the paper); otherwise the episode ends at 30 m off route.
+    on_start: called with the World once traffic is in, to set up a scenario.
+    """
+    town = town if isinstance(town, Town) else resolve_town(town)
+    check_weather(weather)
+    town.density(density)
+    if seed < 0:
+        raise BidError(f"seed must be >= 0, got {seed}")
+    route_index = route if isinstance(route, int) else -1
+    spec = route_by_index(town, route) if isinstance(route, int) else route
+    graph = road_graph(town.net_file)
+    planned = plan_spec(graph, spec)
+    town_map = load_town_map(town)
+    lights = _route_lights(planned, graph)
+    monitor = Monitor(town_map, graph, params)
+    progress = Progress(planned)
+    timeout_s = planned.length_m / TIMEOUT_SPEED_MPS + TIMEOUT_EXTRA_S
+    info = EpisodeInfo(town.name, route_index, weather, density, seed, planned, params)
+    agent_name = type(agent).__name__
+    status = "timeout"
+    driven = 0.0
+    replans = 0
+    world = World(town, density, seed, planned, params, town_map)
+    try:
+        if on_start is not None:
+            on_start(world)
+        ego = world.ego
+        snap = world.snapshot(_view(ego, progress, params))
+        snap = _with_light(snap, progress, lights, params)
+        agent.reset(info)
+        prev_frame = None
+        while True:
+            frame = renderer.render(snap) if renderer is not None else None
+            obs = Observation(frame, prev_frame if prev_frame is not None else frame,
+                              snap.ego.command, ego.speed_mps, snap)
+            control = agent.act(obs)
+            if recorder is not None:
+                recorder.write(snap, frame, control)
+            prev_frame = frame
+            new = step(ego, control, params, DT_S)
+            world.advance(new)
+            driven += math.hypot(new.x_m - ego.x_m, new.y_m - ego.y_m)
+            gained = progress.update(new.x_m, new.y_m)
+            if replan and _left_route(progress, monitor, new):
+                try:
+                    edge, lane, pos = graph.locate(new.x_m, new.y_m, new.yaw_rad)
+                    fresh = plan(graph, edge, pos, spec.goal_edge, spec.goal_pos_m, start_lane=lane)
+                except BidError:
+                    fresh = None
+                if fresh is not None:
+                    replans += 1
+                    monitor.infractions.append(
+                        Infraction(m.ROUTE_DEVIATION, round(world.step_count * DT_S, 2),
+                                   round(new.x_m, 2), round(new.y_m, 2), detail="replanned"))
+                    progress.replace(fresh)
+                    progress.update(new.x_m, new.y_m)
+                    world.set_route(fresh)
+                    lights = _route_lights(fresh, graph)
+            snap = world.snapshot(_view(new, progress, params))
+            snap = _with_light(snap, progress, lights, params)
+            monitor.check(snap, ego, new, progress.route, progress.s_m, gained)
+            ego = new
+            t = world.step_count * DT_S
+            goal = progress.route.polyline[-1]
+            if (progress.completed_m > 0.99 * progress.first_length_m
+                    and math.hypot(ego.x_m - goal[0], ego.y_m - goal[1]) < GOAL_RADIUS_M):
+                status = "completed"
+                break
+            if abs(progress.lateral_m) > DEVIATION_M:
+                status = "route_deviation"
+                monitor.infractions.append(Infraction(m.ROUTE_DEVIATION, round(t, 2), round(ego.x_m, 2), round(ego.y_m, 2)))
+                break
+            if monitor.blocked:
+                status = "blocked"
+                monitor.infractions.append(Infraction(m.BLOCKED, round(t, 2), round(ego.x_m, 2), round(ego.y_m, 2)))
+                break
+            if t >= timeout_s or (max_steps is not None and world.step_count >= max_steps):
+                status = "timeout"
+                monitor.infractions.append(Infraction(m.TIMEOUT, round(t, 2), round(ego.x_m, 2), round(ego.y_m, 2)))
+                break
+    finally:
+        world.close()
+    infractions = monitor.infractions
+    metrics = m.episode_metrics(
+        route_length_m=progress.first_length_m,
+        completed_m=progress.completed_m,
+        completed=status == "completed",
+        infractions=infractions,
+        outside_lane_m=min(monitor.outside_lane_m, progress.completed_m),
+    )
+    return EpisodeResult(
+        town=town.name, route_index=route_index, weather=weather, density=density, seed=seed,
+        agent=agent_name, status=status, steps=world.step_count, time_s=round(world.step_count * DT_S, 2),
+        route_length_m=round(progress.first_length_m, 2), completed_m=round(progress.completed_m, 2),
+        driven_m=round(driven, 2), outside_lane_m=round(monitor.outside_lane_m, 2), replans=replans,
+        infractions=infractions, metrics=metrics,
+    )
+
+
+def _left_route(progress: Progress, monitor: Monitor, ego: EgoState) -> bool:
+    return abs(progress.lateral_m) > REPLAN_LATERAL_M and monitor.in_lane(ego, progress.route, progress.s_m)
+
+
+def _view(ego: EgoState, progress: Progress, params: EgoParams) -> EgoView:
+    route = progress.route
+    dyaw = ego.yaw_rad - progress.heading_rad
+    piece = route.piece_at(progress.s_m)
+    return EgoView(
+        x_m=ego.x_m, y_m=ego.y_m, yaw_rad=ego.yaw_rad, speed_mps=ego.speed_mps,
+        length_m=params.length_m, width_m=params.width_m, height_m=params.height_m,
+        lane_id=piece.lane_id if abs(progress.lateral_m) < 2.5 else "",
+        lateral_m=progress.lateral_m,
+        heading_error_rad=math.atan2(math.sin(dyaw), math.cos(dyaw)),
+        route_s_m=progress.s_m, route_length_m=route.length_m,
+        command=route.command_at(progress.s_m),
+    )
+
+
+def _route_lights(route: Route, graph) -> list[tuple[float, str, int]]:
+    """(route s of the stop line, signal id, link index) for each signalised junction ahead."""
+    out = []
+    pieces = route.pieces
+    links = {}
+    for edge_id in route.edges:
+        for conns in graph.net.getEdge(edge_id).getOutgoing().values():
+            for c in conns:
+                if c.getTLSID() and c.getViaLaneID():
+                    links[(c.getFromLane().getID(), c.getViaLaneID())] = (c.getTLSID(), c.getTLLinkIndex())
+    for i in range(1, len(pieces)):
+        key = (pieces[i - 1].lane_id, pieces[i].lane_id)
+        if key in links:
+            out.append((pieces[i].s0_m, *links[key]))
+    return out
+
+
+def _with_light(snap: Snapshot, progress: Progress, lights, params: EgoParams) -> Snapshot:
+    front_s = progress.s_m + params.length_m / 2
+    for s_stop, tls, idx in lights:
+        if s_stop >= front_s - 1.0:
+            state = snap.tls_states.get(tls, "")
+            code = light_code(state[idx]) if idx < len(state) else OFF
+            from dataclasses import replace
+
+            return replace(snap, next_light_state=code, next_light_dist_m=s_stop - front_s)
+    return snap
+
+
+def describe(result: EpisodeResult) -> str:
+    """A short human summary of an episode."""
+    mm = result.metrics
+    kinds = {}
+    for inf in result.infractions:
+        kinds[inf.kind] = kinds.get(inf.kind, 0) + 1
+    inf_text = ", ".join(f"{k} {v}" for k, v in sorted(kinds.items())) or "none"
+    return (
+        f"{result.town} route {result.route_index} {result.weather} {result.density} seed {result.seed} "
+        f"agent {result.agent}: {result.status} after {result.time_s:.1f} s, "
+        f"RC {mm['RC']:.1f} IP {mm['IP']:.3f} DS {mm['DS']:.1f} SR {mm['SR']:.0f} SSR {mm['SSR']:.0f}; "
+        f"driven {result.driven_m:.0f} m of {result.route_length_m:.0f} m; infractions: {inf_text}"
+    )
+
+
+__all__ = ["EpisodeResult", "run_episode", "describe", "COMMAND_NAMES"]

@@ -1,0 +1,240 @@
+"""Towns: resolve a town name or folder, build its SUMO network with netconvert, describe it.
+
+A town is a folder with either plain-XML sources (``*.nod.xml``, ``*.edg.xml`` and optional
+``*.con.xml``, ``*.tll.xml``, ``*.typ.xml``) or a ready ``*.net.xml``, plus an optional
+``town.toml`` (speed limit, densities) and ``routes.toml`` (benchmark routes).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import re
+import subprocess
+import tomllib
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import sumo
+
+from bid_sim.errors import BidError
+
+log = logging.getLogger(__name__)
+
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]
+SCENARIOS = Path(os.environ.get("BID_SCENARIOS", PACKAGE_ROOT / "scenarios"))
+BUILD = Path(os.environ.get("BID_BUILD", PACKAGE_ROOT / "build"))
+BUILT_IN = ("01", "02", "05")
+DENSITIES = ("none", "normal", "crowded")
+
+# netconvert options verified on SUMO 1.28 (DESIGN.md section 6): sidewalks on every edge,
+# crossings and walking areas, static signal programs with pedestrian phases.
+NETCONVERT_OPTIONS = (
+    "--sidewalks.guess", "true",
+    "--sidewalks.guess.max-speed", "20",
+    "--crossings.guess", "true",
+    "--walkingareas", "true",
+    "--default.sidewalk-width", "2.0",
+    "--tls.default-type", "static",
+    "--junctions.corner-detail", "5",
+    "--tls.crossing-min.time", "4",
+    "--tls.crossing-clearance.time", "5",
+    "--no-turnarounds", "true",
+    "--offset.disable-normalization", "true",
+    "--geometry.remove", "false",
+    "--no-internal-links", "false",
+    "--junctions.join", "false",
+)
+NETCONVERT_VERSION_TAG = "bid-sim-netconvert-v1"
+
+# Used when a user's town folder has no town.toml.
+DEFAULT_DENSITY = {"none": (0, 0), "normal": (20, 50), "crowded": (100, 250)}
+
+
+@dataclass(frozen=True)
+class Town:
+    """A resolved town: where its sources are and its settings from town.toml."""
+
+    name: str
+    folder: Path
+    speed_limit_mps: float = 11.18
+    densities: dict[str, tuple[int, int]] = field(default_factory=lambda: dict(DEFAULT_DENSITY))
+
+    @cached_property
+    def net_file(self) -> Path:
+        """The SUMO network, built on demand and rebuilt when the sources change."""
+        return build_net(self)
+
+    def density(self, name: str) -> tuple[int, int]:
+        """(vehicles, pedestrians) for a density name."""
+        if name not in self.densities:
+            raise BidError(
+                f"unknown density {name!r}; use one of {', '.join(self.densities)}"
+            )
+        return self.densities[name]
+
+    @property
+    def routes_file(self) -> Path:
+        return self.folder / "routes.toml"
+
+
+def resolve_town(spec: str | os.PathLike) -> Town:
+    """Turns '02', 'town02', 'Town02' or a folder path into a Town."""
+    text = str(spec)
+    m = re.fullmatch(r"(?i)(?:town)?0?(\d)", text)
+    if m and f"0{m.group(1)}" in BUILT_IN:
+        folder = SCENARIOS / f"town0{m.group(1)}"
+        name = f"Town0{m.group(1)}"
+    else:
+        folder = Path(text)
+        if not folder.is_dir():
+            known = ", ".join(BUILT_IN)
+            raise BidError(
+                f"unknown town {text!r}; use one of {known} or a folder with a SUMO network "
+                "(*.net.xml or *.nod.xml + *.edg.xml)"
+            )
+        name = folder.resolve().name
+    if not _sources(folder) and not list(folder.glob("*.net.xml")):
+        raise BidError(
+            f"town folder {folder} has no network; add *.net.xml or plain XML "
+            "(*.nod.xml + *.edg.xml)"
+        )
+    settings = {}
+    toml_file = folder / "town.toml"
+    if toml_file.exists():
+        try:
+            settings = tomllib.loads(toml_file.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise BidError(f"{toml_file} is not valid TOML ({e}); fix or delete it") from e
+    densities = dict(DEFAULT_DENSITY)
+    for k, v in settings.get("density", {}).items():
+        densities[k] = (int(v[0]), int(v[1]))
+    return Town(
+        name=settings.get("name", name),
+        folder=folder.resolve(),
+        speed_limit_mps=float(settings.get("speed_limit_mps", 11.18)),
+        densities=densities,
+    )
+
+
+def _sources(folder: Path) -> list[Path]:
+    found = []
+    for pattern in ("*.nod.xml", "*.edg.xml", "*.con.xml", "*.tll.xml", "*.typ.xml"):
+        found += sorted(folder.glob(pattern))
+    return found if any(p.name.endswith(".edg.xml") for p in found) else []
+
+
+def netconvert_binary() -> str:
+    return str(Path(sumo.SUMO_HOME) / "bin" / "netconvert")
+
+
+def build_net(town: Town) -> Path:
+    """Builds build/<town>/<town>.net.xml from the plain XML when missing or stale.
+
+    A user's ready .net.xml (e.g. converted from OSM) is used as it is.
+    """
+    sources = _sources(town.folder)
+    if not sources:
+        nets = sorted(town.folder.glob("*.net.xml"))
+        return nets[0]
+    digest = hashlib.sha256(NETCONVERT_VERSION_TAG.encode())
+    for p in sources:
+        digest.update(p.name.encode())
+        digest.update(p.read_bytes())
+    tag = digest.hexdigest()[:16]
+    out_dir = BUILD / town.folder.name
+    net = out_dir / f"{town.folder.name}.net.xml"
+    stamp = out_dir / "net.sha"
+    if net.exists() and stamp.exists() and stamp.read_text() == tag:
+        return net
+    out_dir.mkdir(parents=True, exist_ok=True)
+    args = [netconvert_binary()]
+    for flag, suffix in (
+        ("--node-files", ".nod.xml"),
+        ("--edge-files", ".edg.xml"),
+        ("--connection-files", ".con.xml"),
+        ("--tllogic-files", ".tll.xml"),
+        ("--type-files", ".typ.xml"),
+    ):
+        files = [str(p) for p in sources if p.name.endswith(suffix)]
+        if files:
+            args += [flag, ",".join(files)]
+    tmp = net.with_suffix(".tmp.xml")
+    args += [*NETCONVERT_OPTIONS, "--output-file", str(tmp), "--no-warnings", "true"]
+    log.info("netconvert %s", town.name)
+    proc = subprocess.run(args, capture_output=True, text=True)
+    if proc.returncode != 0:
+        first = (proc.stderr.strip().splitlines() or ["no output"])[0]
+        raise BidError(f"netconvert failed on {town.folder}: {first}; fix the plain XML")
+    os.replace(tmp, net)  # atomic: a half-written net is never picked up
+    stamp.write_text(tag)
+    return net
+
+
+def describe_town(town: Town) -> dict:
+    """The figures `bid towns` prints: size, junctions, signals, lanes, street length."""
+    import numpy as np
+    import sumolib
+
+    net = sumolib.net.readNet(str(town.net_file))
+    edges = [e for e in net.getEdges() if e.getFunction() == "" and _car_lanes(e)]
+    neighbours: dict[str, set[str]] = {}
+    for e in edges:
+        a, b = e.getFromNode().getID(), e.getToNode().getID()
+        neighbours.setdefault(a, set()).add(b)
+        neighbours.setdefault(b, set()).add(a)
+    # A junction is where three or more streets meet; degree-2 nodes are only geometry.
+    arms = {n: _arms(net.getNode(n), edges) for n in neighbours}
+    junctions = sorted(n for n, k in arms.items() if k >= 3)
+    signalised = [n for n in junctions if net.getNode(n).getType().startswith("traffic_light")]
+    pts = np.concatenate([np.asarray(e.getRawShape()) for e in edges])
+    lo, hi = pts.min(0), pts.max(0)
+    # A two-way street is two edges over the same centre line: count it once.
+    seen: set[tuple] = set()
+    street_m = 0.0
+    for e in sorted(edges, key=lambda e: e.getID()):
+        shape = tuple(np.round(np.asarray(e.getRawShape()), 1).ravel())
+        back = tuple(np.round(np.asarray(e.getRawShape()[::-1]), 1).ravel())
+        if back in seen:
+            continue
+        seen.add(shape)
+        lanes = _car_lanes(e)
+        # Street length between junction areas, like CARLA's road lengths.
+        street_m += sum(lane.getLength() for lane in lanes) / len(lanes)
+    lanes = sorted({len(_car_lanes(e)) for e in edges})
+    return {
+        "town": town.name,
+        "width_m": round(float(hi[0] - lo[0]), 1),
+        "height_m": round(float(hi[1] - lo[1]), 1),
+        "junctions": len(junctions),
+        "t_junctions": sum(arms[n] == 3 for n in junctions),
+        "four_way": sum(arms[n] == 4 for n in junctions),
+        "signalised": len(signalised),
+        "lanes_per_direction": lanes,
+        "street_length_m": round(street_m, 1),
+    }
+
+
+def _car_lanes(edge) -> list:
+    return [lane for lane in edge.getLanes() if lane.allows("passenger")]
+
+
+def _arms(node, edges) -> int:
+    """Distinct streets at a node: neighbouring nodes, counting parallel streets apart."""
+    ids = {e.getID() for e in edges}
+    others = set()
+    for e in node.getIncoming() + node.getOutgoing():
+        if e.getID() not in ids:
+            continue
+        other = e.getFromNode() if e.getToNode() == node else e.getToNode()
+        others.add((other.getID(), round(_shape_len(e))))
+    return len(others)
+
+
+def _shape_len(edge) -> float:
+    import numpy as np
+
+    s = np.asarray(edge.getRawShape())
+    return float(np.linalg.norm(np.diff(s, axis=0), axis=1).sum())

@@ -1,0 +1,108 @@
+import json
+import shutil
+
+import pytest
+
+from bid_sim.cli import main
+from bid_sim.errors import BidError
+from bid_sim.towns import describe_town, resolve_town
+
+# (town, junctions, T, four-way, signalised, lanes per direction, width, height, street km)
+EXPECTED = {
+    "01": (12, 12, 0, 12, [1], 394, 329, 2.48),
+    "02": (8, 8, 0, 8, [1], 197, 197, 1.06),
+    "05": (21, 8, 13, 15, [1, 2, 3], 473, 399, 3.85),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_town_figures_match_carla(name):
+    d = describe_town(resolve_town(name))
+    junctions, t, four, signals, lanes, w, h, km = EXPECTED[name]
+    assert (d["junctions"], d["t_junctions"], d["four_way"], d["signalised"]) == (junctions, t, four, signals)
+    assert d["lanes_per_direction"] == lanes
+    assert d["width_m"] == pytest.approx(w, rel=0.03)
+    assert d["height_m"] == pytest.approx(h, rel=0.03)
+    assert d["street_length_m"] / 1000 == pytest.approx(km, rel=0.08)
+
+
+@pytest.mark.parametrize("name", ["01", "02", "05"])
+def test_every_street_has_sidewalks_and_signalised_junctions_have_crossings(name):
+    import sumolib
+
+    net = sumolib.net.readNet(str(resolve_town(name).net_file), withInternal=True, withPrograms=True)
+    for e in net.getEdges():
+        if e.getFunction() == "":
+            assert e.getLanes()[0].allows("pedestrian") and not e.getLanes()[0].allows("passenger"), e.getID()
+    crossings = {e.getFromNode().getID() for e in net.getEdges() if e.getFunction() == "crossing"}
+    for tl in net.getTrafficLights():
+        node = tl.getID()
+        assert node in crossings
+        states = [ph.state for p in tl.getPrograms().values() for ph in p.getPhases()]
+        # Pedestrian phases: crossing links turn green while some vehicle links are red.
+        assert any("G" in s and "r" in s for s in states)
+
+
+def test_speed_limit_town02(town02):
+    import sumolib
+
+    net = sumolib.net.readNet(str(town02.net_file))
+    speeds = {round(lane.getSpeed(), 2) for e in net.getEdges() for lane in e.getLanes() if lane.allows("passenger")}
+    assert speeds == {11.18}
+
+
+def test_towns_json_keys(capsys):
+    assert main(["towns", "--json", "02"]) == 0
+    row = json.loads(capsys.readouterr().out)[0]
+    for key in ("town", "width_m", "height_m", "junctions", "t_junctions", "four_way", "signalised", "street_length_m"):
+        assert key in row
+
+
+@pytest.mark.parametrize("spec", ["07", "town9", "/no/such/folder"])
+def test_unknown_town_is_one_line_exit_2(spec, capsys):
+    assert main(["towns", spec]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: unknown town")
+
+
+def test_folder_without_network(tmp_path):
+    with pytest.raises(BidError, match="has no network"):
+        resolve_town(tmp_path)
+
+
+def test_user_folder_plain_xml_is_built_and_rebuilt_on_change(tmp_path, monkeypatch):
+    from bid_sim import towns
+
+    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+    src = resolve_town("02").folder
+    mine = tmp_path / "mytown"
+    mine.mkdir()
+    for f in ("town.nod.xml", "town.edg.xml"):
+        shutil.copy(src / f, mine / f)
+    town = resolve_town(mine)
+    net = town.net_file
+    assert net.exists() and describe_town(town)["junctions"] == 8
+    first = net.stat().st_mtime_ns
+    assert towns.build_net(town) == net and net.stat().st_mtime_ns == first  # cached
+    edg = mine / "town.edg.xml"
+    edg.write_text(edg.read_text().replace('speed="11.18"', 'speed="8.33"'))
+    towns.build_net(resolve_town(mine))
+    assert net.stat().st_mtime_ns != first
+
+
+def test_user_folder_with_net_xml(tmp_path):
+    shutil.copy(resolve_town("02").net_file, tmp_path / "city.net.xml")
+    town = resolve_town(tmp_path)
+    assert town.net_file == tmp_path / "city.net.xml"
+    assert describe_town(town)["signalised"] == 8
+
+
+def test_broken_plain_xml_is_a_bid_error(tmp_path, monkeypatch):
+    from bid_sim import towns
+
+    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+    (tmp_path / "bad.nod.xml").write_text("<nodes><node id='a' x='0' y='0'/></nodes>")
+    (tmp_path / "bad.edg.xml").write_text("<edges><edge id='e' from='a' to='zz'/></edges>")
+    with pytest.raises(BidError, match="netconvert failed"):
+        resolve_town(tmp_path).net_file
+    assert not list((tmp_path / "build").rglob("*.net.xml"))
