@@ -14,7 +14,15 @@ from bid_sim.ego import EgoParams, EgoState, step
 from bid_sim.errors import BidError
 from bid_sim.infractions import DEVIATION_M, Monitor
 from bid_sim.metrics import Infraction
-from bid_sim.routes import COMMAND_NAMES, Route, RouteSpec, plan, plan_spec, road_graph, route_by_index
+from bid_sim.routes import (
+    COMMAND_NAMES,
+    Route,
+    RouteSpec,
+    plan,
+    plan_spec,
+    road_graph,
+    route_by_index,
+)
 from bid_sim.snapshot import OFF, EgoView, Snapshot, light_code
 from bid_sim.town_map import load_town_map
 from bid_sim.towns import Town, resolve_town
@@ -26,6 +34,7 @@ log = logging.getLogger(__name__)
 TIMEOUT_SPEED_MPS = 5.0 / 3.6
 TIMEOUT_EXTRA_S = 20.0
 GOAL_RADIUS_M = 10.0
+PROGRESS_RADIUS_M = 10.0
 REPLAN_LATERAL_M = 6.0  # farther than this from the route on another lane: re-plan
 
 
@@ -77,12 +86,12 @@ class Progress:
     def update(self, x: float, y: float) -> float:
         """Projects the ego onto the route; returns the progress gained this step (m)."""
         s, lat, heading = self.route.project(x, y, self.s_m)
-        gained = max(0.0, s - self.s_m) if abs(lat) < DEVIATION_M else 0.0
-        self.s_m = max(self.s_m, s) if abs(lat) < DEVIATION_M else self.s_m
+        # Progress counts only near the route (the leaderboard's 10 m waypoint threshold).
+        gained = max(0.0, s - self.s_m) if abs(lat) < PROGRESS_RADIUS_M else 0.0
+        self.s_m += gained
         self.lateral_m, self.heading_rad = lat, heading
-        before = self.completed_m
         self.completed_m = min(self.first_length_m, max(self.completed_m, self.offset_m + self.s_m))
-        return gained if self.completed_m > before or gained == 0.0 else gained
+        return gained
 
     def replace(self, route: Route) -> None:
         self.offset_m = self.first_length_m - route.length_m
@@ -269,4 +278,4 @@ def describe(result: EpisodeResult) -> str:
     )
 
 
-__all__ = ["EpisodeResult", "run_episode", "describe", "COMMAND_NAMES"]
+__all__ = ["COMMAND_NAMES", "EpisodeResult", "describe", "run_episode"]

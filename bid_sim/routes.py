@@ -216,8 +216,8 @@ def plan(graph: RoadGraph, start_edge: str, start_pos_m: float, goal_edge: str, 
     n = len(edges)
     links = [graph.connections(edges[i], edges[i + 1]) for i in range(n - 1)]
     lanes_of = [[lane.getIndex() for lane in graph.car_edges[e]] for e in edges]
-    cost: list[dict[int, float]] = [dict() for _ in range(n)]
-    choice: list[dict[int, tuple]] = [dict() for _ in range(n)]
+    cost: list[dict[int, float]] = [{} for _ in range(n)]
+    choice: list[dict[int, tuple]] = [{} for _ in range(n)]
     for lane in lanes_of[-1]:
         cost[-1][lane] = 0.0
     for i in range(n - 2, -1, -1):

@@ -88,8 +88,11 @@ class World:
         self.traffic = Traffic(rng, drive, walk, lengths, (self.ego.x_m, self.ego.y_m))
         self.traffic.define_types()
         self.traffic.spawn(self.n_vehicles, self.n_pedestrians)
-        self._sumo_step()
-        self._place_ego()
+        try:
+            self._sumo_step()
+            self._place_ego()
+        except traci.TraCIException as e:
+            raise SumoError(f"SUMO could not place the ego: {e}; check the route's start") from e
 
     def _add_ego(self) -> None:
         p = self.params
@@ -123,10 +126,7 @@ class World:
 
     # -- stepping -----------------------------------------------------------------------
     def _sumo_step(self) -> None:
-        try:
-            traci.simulationStep()
-        except traci.TraCIException as e:
-            raise SumoError(f"SUMO stopped at step {self.step_count}: {e}; rerun with another seed") from e
+        traci.simulationStep()
 
     def _place_ego(self) -> None:
         xf, yf = self.ego.front_bumper(self.params)
@@ -142,10 +142,13 @@ class World:
     def advance(self, ego: EgoState) -> None:
         """Moves the ego to its new state and the simulation one step on."""
         self.ego = ego
-        self._place_ego()
-        self._sumo_step()
-        self.step_count += 1
-        self._hold_route()
+        try:
+            self._place_ego()
+            self._sumo_step()
+            self.step_count += 1
+            self._hold_route()
+        except traci.TraCIException as e:
+            raise SumoError(f"SUMO failed at step {self.step_count}: {e}; rerun with another seed") from e
 
     def _hold_route(self) -> None:
         """moveToXY onto another edge cuts the ego's SUMO route; put the planned edges back."""

@@ -332,7 +332,7 @@ def test_dedup_negative_window_raises():
 
 def row(seed, density, weather, **values):
     base = {"seed": seed, "density": density, "weather": weather, "town": "02"}
-    base.update({k: 0 for k in COUNT_KEYS})
+    base.update(dict.fromkeys(COUNT_KEYS, 0))
     base.update(values)
     return base
 
@@ -447,7 +447,7 @@ def test_numeric_group_values_sort_numerically():
 
 @pytest.mark.parametrize("func", [aggregate, stats])
 def test_empty_rows_raise_bid_error(func):
-    with pytest.raises(BidError, match="^no episodes to aggregate; run the benchmark first$"):
+    with pytest.raises(BidError, match=r"^no episodes to aggregate; run the benchmark first$"):
         func([])
 
 

@@ -5,8 +5,18 @@ import pytest
 
 from bid_sim.errors import BidError
 from bid_sim.routes import (
-    CHANGELANELEFT, CHANGELANERIGHT, LANEFOLLOW, LEFT, RIGHT, STRAIGHT, RouteSpec, load_routes,
-    plan, plan_spec, road_graph, route_by_index,
+    CHANGELANELEFT,
+    CHANGELANERIGHT,
+    LANEFOLLOW,
+    LEFT,
+    RIGHT,
+    STRAIGHT,
+    RouteSpec,
+    load_routes,
+    plan,
+    plan_spec,
+    road_graph,
+    route_by_index,
 )
 from bid_sim.towns import resolve_town
 
@@ -55,7 +65,7 @@ def test_turn_direction_matches_geometry(route02):
 def test_project_round_trip(route02):
     for s in (5.0, 100.0, route02.length_m - 5.0):
         x, y, h = route02.point_at(s)
-        ps, lat, heading = route02.project(x + 1.0 * math.cos(h + math.pi / 2), y + 1.0 * math.sin(h + math.pi / 2), s - 3.0)
+        ps, lat, _ = route02.project(x + 1.0 * math.cos(h + math.pi / 2), y + 1.0 * math.sin(h + math.pi / 2), s - 3.0)
         assert ps == pytest.approx(s, abs=0.5) and lat == pytest.approx(1.0, abs=0.05)
 
 

@@ -255,7 +255,7 @@ def test_is_paved(town_map):
 def test_box_checks(town_map):
     for i, b in enumerate(town_map.buildings[::7]):
         p = Polygon(b.footprint).buffer(-0.5).representative_point()
-        inside = np.array([[-0.3, -0.3], [0.3, -0.3], [0.3, 0.3], [-0.3, 0.3]]) + [p.x, p.y]
+        inside = np.array([[-0.3, -0.3], [0.3, -0.3], [0.3, 0.3], [-0.3, 0.3]]) + np.array([p.x, p.y])
         assert town_map.building_hit(inside) == 7 * i
         assert town_map.off_paved(inside)
     for lane in town_map.lanes:

@@ -104,5 +104,5 @@ def test_broken_plain_xml_is_a_bid_error(tmp_path, monkeypatch):
     (tmp_path / "bad.nod.xml").write_text("<nodes><node id='a' x='0' y='0'/></nodes>")
     (tmp_path / "bad.edg.xml").write_text("<edges><edge id='e' from='a' to='zz'/></edges>")
     with pytest.raises(BidError, match="netconvert failed"):
-        resolve_town(tmp_path).net_file
+        _ = resolve_town(tmp_path).net_file
     assert not list((tmp_path / "build").rglob("*.net.xml"))

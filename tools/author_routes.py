@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bid_sim.routes import generate_routes, plan_spec, road_graph, RouteSpec
+from bid_sim.routes import RouteSpec, generate_routes, plan_spec, road_graph
 from bid_sim.towns import resolve_town
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _write(town_dir: Path, specs: list[RouteSpec], lengths: list[float], note: str) -> None:
     lines = [f"# {note}", "# start/goal: edge id and distance along it (m); length_m is informative.", ""]
-    for spec, length in zip(specs, lengths):
+    for spec, length in zip(specs, lengths, strict=True):
         lines += [
             "[[route]]",
             f'start_edge = "{spec.start_edge}"',
@@ -46,7 +46,7 @@ def nocrash(ref: dict, t: str) -> None:
     for r in ref[f"Town{t}"][key]:
         ends = []
         for x, y, yaw in (r["start"], r["goal"]):
-            edge, lane, pos = graph.locate(x, -y, math.radians(-yaw), radius_m=12.0)
+            edge, _, pos = graph.locate(x, -y, math.radians(-yaw), radius_m=12.0)
             ends.append((edge, pos))
         spec = RouteSpec(ends[0][0], round(ends[0][1], 1), ends[1][0], round(ends[1][1], 1))
         specs.append(spec)

@@ -30,7 +30,7 @@ def _flip(points) -> np.ndarray:
 
 def _chain(polylines: list[np.ndarray], start: np.ndarray) -> np.ndarray:
     """Joins per-road polylines into one from the end nearest `start`."""
-    rest = [p for p in polylines]
+    rest = list(polylines)
     out = [start[None, :]]
     cur = start
     while rest:
@@ -95,7 +95,7 @@ def author(ref_dir: Path, town: str) -> None:
             line = _offset_left(_flip(s["polyline_carla_rightmost_lane_a_to_b"]), (n_ab - 0.5) * lane_w)
         if np.linalg.norm(line[0] - centre[a]) > np.linalg.norm(line[-1] - centre[a]):
             line = line[::-1]
-        streets.append(dict(id=s["id"], a=a, b=b, line=_simplify(line), n_ab=n_ab, n_ba=n_ba))
+        streets.append({"id": s["id"], "a": a, "b": b, "line": _simplify(line), "n_ab": n_ab, "n_ba": n_ba})
 
     # Junction nodes where the street axes meet (the reference gives the junction area's
     # centroid, which sits off the through street at a T).

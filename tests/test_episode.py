@@ -1,0 +1,62 @@
+import json
+
+import pytest
+
+from bid_sim.agents import LaneFollower
+from bid_sim.cli import main
+from bid_sim.episode import EpisodeResult, run_episode
+from bid_sim.errors import BidError
+
+
+def test_scripted_episode_in_town02_crowded_runs_to_a_result(town02):
+    r = run_episode(town02, 3, "WetSunset", "crowded", 1, LaneFollower(6.0), max_steps=400)
+    assert isinstance(r, EpisodeResult)
+    assert r.steps <= 400 and r.driven_m > 50
+    for key in ("SR", "SSR", "RC", "IP", "DS", "CV", "CP", "CL", "TL", "OL", "RD", "ABD"):
+        assert key in r.metrics
+    assert r.metrics["DS"] == pytest.approx(r.metrics["RC"] * r.metrics["IP"])
+    json.dumps(r.to_dict())
+
+
+def test_same_seed_same_episode(town02):
+    a = run_episode(town02, 1, "ClearNoon", "normal", 4, LaneFollower(6.0), max_steps=300)
+    b = run_episode(town02, 1, "ClearNoon", "normal", 4, LaneFollower(6.0), max_steps=300)
+    assert a.to_dict() == b.to_dict()
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["episode", "--town", "09"], "unknown town"),
+        (["episode", "--density", "busy"], "unknown density"),
+        (["episode", "--weather", "Fog"], "unknown weather"),
+        (["episode", "--route", "40"], "out of range"),
+        (["episode", "--agent", "nope"], "unknown agent"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_cli_episode_json(capsys):
+    assert main(["episode", "--town", "02", "--density", "crowded", "--max-steps", "100", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["town"] == "Town02" and out["steps"] == 100 and out["status"] == "timeout"
+
+
+def test_negative_seed(town02):
+    with pytest.raises(BidError, match="seed"):
+        run_episode(town02, 0, "ClearNoon", "none", -1, LaneFollower())
+
+
+def test_sumo_error_mid_episode_is_a_bid_error(town02):
+    import libsumo as traci
+
+    def lose_the_ego(world):
+        traci.vehicle.remove("ego")
+
+    with pytest.raises(BidError, match="SUMO failed at step 0"):
+        run_episode(town02, 0, "ClearNoon", "none", 0, LaneFollower(), on_start=lose_the_ego, max_steps=20)
+    assert not traci.isLoaded()
