@@ -143,7 +143,7 @@ def run_episode(
         if on_start is not None:
             on_start(world)
         ego = world.ego
-        snap = world.snapshot(_view(ego, progress, params))
+        snap = world.snapshot(_view(ego, progress, params, town_map))
         snap = _with_light(snap, progress, lights, params)
         agent.reset(info)
         prev_frame = None
@@ -174,7 +174,7 @@ def run_episode(
                     progress.update(new.x_m, new.y_m)
                     world.set_route(fresh)
                     lights = _route_lights(fresh, graph)
-            snap = world.snapshot(_view(new, progress, params))
+            snap = world.snapshot(_view(new, progress, params, town_map))
             snap = _with_light(snap, progress, lights, params)
             monitor.check(snap, ego, new, progress.route, progress.s_m, gained)
             ego = new
@@ -219,14 +219,20 @@ def _left_route(progress: Progress, monitor: Monitor, ego: EgoState) -> bool:
     return abs(progress.lateral_m) > REPLAN_LATERAL_M and monitor.in_lane(ego, progress.route, progress.s_m)
 
 
-def _view(ego: EgoState, progress: Progress, params: EgoParams) -> EgoView:
+def _view(ego: EgoState, progress: Progress, params: EgoParams, town_map=None) -> EgoView:
     route = progress.route
     dyaw = ego.yaw_rad - progress.heading_rad
-    piece = route.piece_at(progress.s_m)
+    # Lane matching: the planned route's lane first, then any lane running the ego's way.
+    lane_id = route.piece_at(progress.s_m).lane_id if abs(progress.lateral_m) < 2.5 else ""
+    if not lane_id and town_map is not None:
+        for lid, _dist, _, heading in town_map.nearest_lanes(ego.x_m, ego.y_m, 3.0):
+            if math.cos(ego.yaw_rad - heading) > 0.0:
+                lane_id = lid
+                break
     return EgoView(
         x_m=ego.x_m, y_m=ego.y_m, yaw_rad=ego.yaw_rad, speed_mps=ego.speed_mps,
         length_m=params.length_m, width_m=params.width_m, height_m=params.height_m,
-        lane_id=piece.lane_id if abs(progress.lateral_m) < 2.5 else "",
+        lane_id=lane_id,
         lateral_m=progress.lateral_m,
         heading_error_rad=math.atan2(math.sin(dyaw), math.cos(dyaw)),
         route_s_m=progress.s_m, route_length_m=route.length_m,

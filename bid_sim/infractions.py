@@ -143,12 +143,9 @@ class Monitor:
 
     def in_lane(self, ego: EgoState, route: Route, route_s_m: float) -> bool:
         """Within lane_width/2 + 1.3 m of a driving-lane centre, heading within 120° of it."""
-        for _, dist, _, heading in self.town_map.nearest_lanes(ego.x_m, ego.y_m, 4.0 + OUTSIDE_MARGIN_M):
+        for lane_id, dist, _, heading in self.town_map.nearest_lanes(ego.x_m, ego.y_m, 4.0 + OUTSIDE_MARGIN_M):
             dyaw = abs(math.atan2(math.sin(ego.yaw_rad - heading), math.cos(ego.yaw_rad - heading)))
-            if dyaw > OUTSIDE_HEADING_RAD:
-                continue
-            lane_w = self._lane_width(_)
-            if dist <= lane_w / 2 + OUTSIDE_MARGIN_M:
+            if dyaw <= OUTSIDE_HEADING_RAD and dist <= self._lane_width(lane_id) / 2 + OUTSIDE_MARGIN_M:
                 return True
         return False
 
