@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 from bid_sim import __version__
@@ -244,12 +244,7 @@ def _route_lights(route: Route, graph) -> list[tuple[float, str, int]]:
     """(route s of the stop line, signal id, link index) for each signalised junction ahead."""
     out = []
     pieces = route.pieces
-    links = {}
-    for edge_id in route.edges:
-        for conns in graph.net.getEdge(edge_id).getOutgoing().values():
-            for c in conns:
-                if c.getTLSID() and c.getViaLaneID():
-                    links[(c.getFromLane().getID(), c.getViaLaneID())] = (c.getTLSID(), c.getTLLinkIndex())
+    links = graph.tls_links
     for i in range(1, len(pieces)):
         key = (pieces[i - 1].lane_id, pieces[i].lane_id)
         if key in links:
@@ -263,8 +258,6 @@ def _with_light(snap: Snapshot, progress: Progress, lights, params: EgoParams) -
         if s_stop >= front_s - 1.0:
             state = snap.tls_states.get(tls, "")
             code = light_code(state[idx]) if idx < len(state) else OFF
-            from dataclasses import replace
-
             return replace(snap, next_light_state=code, next_light_dist_m=s_stop - front_s)
     return snap
 

@@ -50,10 +50,9 @@ class Monitor:
     _outside: bool = False
     _last_hit: dict[str, float] = field(default_factory=dict)
     _still_since: float = 0.0
-    _links: dict[tuple[str, str], tuple[str, int]] | None = None
 
     def __post_init__(self) -> None:
-        self._links = _tls_links(self.graph)
+        self._links = self.graph.tls_links
         self._stop_by_lane = {s.lane_id: s for s in self.town_map.stop_lines}
 
     def _add(self, kind: str, t: float, x: float, y: float, actor: str = "", detail: str = "") -> None:
@@ -168,14 +167,3 @@ def _next_via(route: Route, lane_id: str) -> str:
         if p.lane_id == lane_id and pieces[i + 1].junction:
             return pieces[i + 1].lane_id
     return ""
-
-
-def _tls_links(graph: RoadGraph) -> dict[tuple[str, str], tuple[str, int]]:
-    """(incoming lane, first connector lane) -> (signal id, link index)."""
-    out = {}
-    for edge_id in graph.car_edges:
-        for conns in graph.net.getEdge(edge_id).getOutgoing().values():
-            for c in conns:
-                if c.getTLSID() and c.getViaLaneID():
-                    out[(c.getFromLane().getID(), c.getViaLaneID())] = (c.getTLSID(), c.getTLLinkIndex())
-    return out

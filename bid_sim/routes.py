@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -167,6 +167,17 @@ class RoadGraph:
                     continue
                 out.append((c.getFromLane().getIndex(), c.getToLane().getIndex(), self._vias(c), c.getDirection()))
         return sorted(out, key=lambda t: (t[0], t[1]))
+
+    @cached_property
+    def tls_links(self) -> dict[tuple[str, str], tuple[str, int]]:
+        """(incoming lane, first junction connector lane) -> (signal id, link index)."""
+        out = {}
+        for edge_id in self.car_edges:
+            for conns in self.net.getEdge(edge_id).getOutgoing().values():
+                for c in conns:
+                    if c.getTLSID() and c.getViaLaneID():
+                        out[(c.getFromLane().getID(), c.getViaLaneID())] = (c.getTLSID(), c.getTLLinkIndex())
+        return out
 
     def _vias(self, conn) -> list[str]:
         vias = []
