@@ -50,14 +50,18 @@ class LaneFollower:
         self.target_speed_mps = target_speed_mps
         self.lookahead_m = lookahead_m
         self.params = EgoParams()
+        self._cum: tuple[np.ndarray, np.ndarray] | None = None
 
     def reset(self, info: EpisodeInfo) -> None:
         self.params = info.params
+        self._cum = None
 
     def act(self, obs: Observation) -> Control:
         ego = obs.snapshot.ego
         line = obs.snapshot.route_polyline
-        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+        if self._cum is None or self._cum[0] is not line:  # once per (re-planned) route
+            self._cum = (line, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))]))
+        cum = self._cum[1]
         s = min(ego.route_s_m + self.lookahead_m + 0.5 * ego.speed_mps, cum[-1])
         tx, ty = np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])
         return Control(pursuit_steer(ego.x_m, ego.y_m, ego.yaw_rad, tx, ty, self.params),

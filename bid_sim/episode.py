@@ -216,7 +216,7 @@ def run_episode(
 
 
 def _left_route(progress: Progress, monitor: Monitor, ego: EgoState) -> bool:
-    return abs(progress.lateral_m) > REPLAN_LATERAL_M and monitor.in_lane(ego, progress.route, progress.s_m)
+    return abs(progress.lateral_m) > REPLAN_LATERAL_M and monitor.in_lane(ego)
 
 
 def _view(ego: EgoState, progress: Progress, params: EgoParams, town_map=None) -> EgoView:

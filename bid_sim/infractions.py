@@ -72,8 +72,8 @@ class Monitor:
         corners = ego.corners(self.params)
         self._check_actors(snap, ego, corners, t)
         self._check_layout(ego, corners, t)
-        self._check_red_light(snap, prev, ego, route, route_s_m, t)
-        self._check_outside(ego, route, route_s_m, ds_m, t)
+        self._check_red_light(snap, prev, ego, route, t)
+        self._check_outside(ego, ds_m, t)
         if ego.speed_mps < BLOCKED_SPEED_MPS:
             self._still_since += 0.1
         else:
@@ -107,7 +107,7 @@ class Monitor:
             self._collision(m.COLLISION_LAYOUT, t, ego, "unpaved")
 
     def _check_red_light(self, snap: Snapshot, prev: EgoState, ego: EgoState, route: Route,
-                         route_s_m: float, t: float) -> None:
+                         t: float) -> None:
         """A red-light run: the front bumper crosses a stop line while its link is red."""
         a = np.array(prev.front_bumper(self.params))
         b = np.array(ego.front_bumper(self.params))
@@ -132,15 +132,15 @@ class Monitor:
             if red:
                 self._add(m.RED_LIGHT, t, ego.x_m, ego.y_m, stop.tls_id, lane_id)
 
-    def _check_outside(self, ego: EgoState, route: Route, route_s_m: float, ds_m: float, t: float) -> None:
-        outside = not self.in_lane(ego, route, route_s_m)
+    def _check_outside(self, ego: EgoState, ds_m: float, t: float) -> None:
+        outside = not self.in_lane(ego)
         if outside:
             self.outside_lane_m += max(ds_m, 0.0)
             if not self._outside:
                 self._add(m.OUTSIDE_LANE, t, ego.x_m, ego.y_m)
         self._outside = outside
 
-    def in_lane(self, ego: EgoState, route: Route, route_s_m: float) -> bool:
+    def in_lane(self, ego: EgoState) -> bool:
         """Within lane_width/2 + 1.3 m of a driving-lane centre, heading within 120° of it."""
         for lane_id, dist, _, heading in self.town_map.nearest_lanes(ego.x_m, ego.y_m, 4.0 + OUTSIDE_MARGIN_M):
             dyaw = abs(math.atan2(math.sin(ego.yaw_rad - heading), math.cos(ego.yaw_rad - heading)))

@@ -295,7 +295,6 @@ def _build(graph: RoadGraph, edges, stretches) -> Route:
             add(graph.lane_shape(via), via, via.rsplit("_", 1)[0], junction, command)
             continue
         edge, entry, exit_, s_from, s_to = st
-        e = graph.net.getEdge(edge)
         a = _cut(graph.lane_shape(f"{edge}_{entry}"), s_from, s_to)
         if entry == exit_:
             add(a, f"{edge}_{entry}", edge, "", LANEFOLLOW)
@@ -314,7 +313,6 @@ def _build(graph: RoadGraph, edges, stretches) -> Route:
         command = CHANGELANELEFT if exit_ > entry else CHANGELANERIGHT
         add(np.array(blend), f"{edge}_{exit_}", edge, "", command)
         add(_cut(b, mid1, None), f"{edge}_{exit_}", edge, "", LANEFOLLOW)
-        del e
     poly = np.concatenate(pts)
     cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
     return Route(tuple(edges), tuple(pieces), poly, cum, float(cum[-1]))
