@@ -27,6 +27,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_world.py
+	$(BID) bench render
 
 towns: $(STAMP)
 	$(BID) towns

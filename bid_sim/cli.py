@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import json
 import logging
 import sys
@@ -52,15 +53,45 @@ def _routes(args: argparse.Namespace) -> int:
 
 
 def _episode(args: argparse.Namespace) -> int:
-    from bid_sim.agents import LaneFollower
     from bid_sim.episode import describe, run_episode
 
-    if args.agent != "lanefollow":
-        raise BidError(f"unknown agent {args.agent!r}; use 'lanefollow' (the expert and BID agents come later)")
     result = run_episode(args.town, args.route, args.weather, args.density, args.seed,
-                         LaneFollower(target_speed_mps=args.speed), replan=args.replan,
+                         _agent(args.agent, args.speed), replan=args.replan,
                          max_steps=args.max_steps)
     print(json.dumps(result.to_dict(), indent=1) if args.json else describe(result))
+    return 0
+
+
+def _agent(name: str, speed_mps: float):
+    from bid_sim.agents import LaneFollower
+
+    if name == "lanefollow":
+        return LaneFollower(target_speed_mps=speed_mps)
+    raise BidError(f"unknown agent {name!r}; use 'lanefollow'")
+
+
+def _view(args: argparse.Namespace) -> int:
+    from bid_sim.render.view import view
+
+    print(view(args.town, args.route, args.density, args.seed, args.weather, args.out,
+               _agent(args.agent, args.speed), step=args.step, steps=args.steps,
+               workers=args.render_workers))
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from bid_sim.render.bench import bench_render
+
+    result = bench_render(args.town, args.density, args.weather, frames=args.frames)
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        st = result["stage_ms_per_frame"]
+        print(f"{result['town']} {result['density']} {result['weather']}: "
+              f"{result['render_fps_per_core']} frames/s per core (median {result['render_ms_median']} ms "
+              f"over {result['frames']} frames; target 400); stages ms "
+              + ", ".join(f"{k} {v}" for k, v in st.items())
+              + f"; 700 vs 70 vehicles in town: x{result['render_cost_ratio_700_vs_70']} (target <= 1.3)")
     return 0
 
 
@@ -91,6 +122,34 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-steps", type=int, default=None)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=_episode)
+
+    v = sub.add_parser("view", help="write camera frames of an episode as a PNG (one step) or an MP4")
+    v.add_argument("--town", default="02")
+    v.add_argument("--route", type=int, default=0)
+    v.add_argument("--density", default="normal")
+    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--weather", default="ClearNoon", help="a weather, or 'all' for the six stacked (PNG)")
+    v.add_argument("--agent", default="lanefollow")
+    v.add_argument("--speed", type=float, default=6.0, help="lane follower's speed, m/s")
+    v.add_argument("--step", type=int, default=50, help="the step a PNG shows")
+    v.add_argument("--steps", type=int, default=200, help="steps an MP4 shows (0.1 s each)")
+    v.add_argument("--render-workers", type=int, default=1, help="worker processes rendering (MP4)")
+    v.add_argument("--out", default="view.png", help="a .png or .mp4 path")
+    v.set_defaults(func=_view)
+
+    b = sub.add_parser("bench", help="benchmarks: 'render' (frames/s per core, stage costs)")
+    b.add_argument("what", choices=["render"])
+    b.add_argument("--town", default="01")
+    b.add_argument("--density", default="crowded")
+    b.add_argument("--weather", default="HardRainNoon", help="HardRainNoon: every effect on")
+    b.add_argument("--frames", type=int, default=240)
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=_bench)
+
+    # Commands contributed by other packages (the model's train, gradcam, ...), found through
+    # the "bid.commands" entry point group so that bid_sim does not depend on them.
+    for ep in sorted(importlib.metadata.entry_points(group="bid.commands"), key=lambda e: e.name):
+        ep.load()(sub)
     return p
 
 
