@@ -8,7 +8,12 @@ STAMP := $(VENV)/.installed
 TOWN ?= 02
 DENSITY ?= normal
 
-.PHONY: demo test bench towns clean lint
+EPISODES ?= 24
+WORKERS ?= 2
+# `make record` records Town01 unless TOWN is given (the demo's default is Town02).
+RECORD_TOWN = $(if $(filter command line environment,$(origin TOWN)),$(TOWN),01)
+
+.PHONY: demo test bench towns clean lint record
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -28,6 +33,11 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_world.py
 	$(BID) bench render
+	$(BID) bench record
+
+# Demonstrations: the expert over random routes, four train weathers, three densities.
+record: $(STAMP)
+	$(BID) record --town $(RECORD_TOWN) --episodes $(EPISODES) --workers $(WORKERS) --out data/town$(RECORD_TOWN)
 
 towns: $(STAMP)
 	$(BID) towns

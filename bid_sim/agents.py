@@ -9,6 +9,7 @@ from typing import Protocol
 import numpy as np
 
 from bid_sim.ego import Control, EgoParams
+from bid_sim.errors import BidError
 from bid_sim.routes import Route
 from bid_sim.snapshot import Snapshot
 
@@ -96,3 +97,22 @@ def pursuit_steer(x: float, y: float, yaw: float, tx: float, ty: float, params: 
 def speed_accel(speed: float, target: float, gain: float = 0.5) -> float:
     """Proportional speed control mapped to accel in [-1, 1]."""
     return float(np.clip(gain * (target - speed), -1.0, 1.0))
+
+
+AGENTS = ("expert", "lanefollow")
+
+
+def make_agent(name: str, speed_mps: float = 6.0) -> Agent:
+    """A scripted agent by name: 'expert' (privileged rule-based driver) or 'lanefollow'
+    (blind to traffic and lights; speed_mps is its speed)."""
+    if name == "expert":
+        try:
+            from bid_sim.expert import Expert
+        except ModuleNotFoundError as e:
+            if e.name != "bid_sim.expert":
+                raise
+            raise BidError("this version has no expert (bid_sim/expert.py); use --agent lanefollow") from e
+        return Expert()
+    if name == "lanefollow":
+        return LaneFollower(target_speed_mps=speed_mps)
+    raise BidError(f"unknown agent {name!r}; use one of {', '.join(AGENTS)}")

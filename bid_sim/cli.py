@@ -6,8 +6,10 @@ import argparse
 import importlib.metadata
 import json
 import logging
+import os
 import sys
 import warnings
+from pathlib import Path
 
 from bid_sim.errors import BidError
 
@@ -63,26 +65,66 @@ def _episode(args: argparse.Namespace) -> int:
 
 
 def _agent(name: str, speed_mps: float):
-    from bid_sim.agents import LaneFollower
+    from bid_sim.agents import make_agent
 
-    if name == "lanefollow":
-        return LaneFollower(target_speed_mps=speed_mps)
-    raise BidError(f"unknown agent {name!r}; use 'lanefollow'")
+    return make_agent(name, speed_mps)
 
 
 def _view(args: argparse.Namespace) -> int:
-    from bid_sim.render.view import view
+    from bid_sim.render.view import view, view_recording
 
+    if args.recording:
+        print(view_recording(args.recording, args.out, args.step))
+        return 0
     print(view(args.town, args.route, args.density, args.seed, args.weather, args.out,
-               _agent(args.agent, args.speed), step=args.step, steps=args.steps,
+               _agent(args.agent, args.speed), step=50 if args.step is None else args.step, steps=args.steps,
                workers=args.render_workers))
     return 0
 
 
+def _record(args: argparse.Namespace) -> int:
+    from bid_sim.record import describe, record
+    from bid_sim.weather import parse_weathers
+
+    densities = tuple(d.strip() for d in args.densities.split(",") if d.strip())
+    out = args.out or f"data/town{args.town}" if args.town.isdigit() else f"data/{Path(args.town).name}"
+    summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
+                     args.workers, out, agent=args.agent, max_steps=args.max_steps,
+                     progress=not args.json)
+    print(json.dumps(summary, indent=1) if args.json else describe(summary))
+    return 2 if summary["failed"] else 0
+
+
+def _recover(args: argparse.Namespace) -> int:
+    from bid_sim.recording import recover
+
+    for f in args.files:
+        path, steps = recover(f)
+        print(f"recovered {steps} steps of {f} -> {path}")
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from bid_sim.render.view import rerender
+
+    print(rerender(args.recording, args.weather, args.out, workers=args.render_workers))
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
+    if args.what == "record":
+        from bid_sim.record import bench_record
+
+        result = bench_record(args.town, args.density or "normal", args.weather or "ClearNoon",
+                              steps=args.frames, agent=args.agent)
+        print(json.dumps(result, indent=1) if args.json else
+              f"{result['town']} {result['density']} {result['weather']}, {result['agent']}: "
+              f"{result['record_fps_per_core']} frames/s per core recorded end to end "
+              f"({result['frames']} frames, {result['kb_per_frame']} KB/frame; target 100)")
+        return 0
     from bid_sim.render.bench import bench_render
 
-    result = bench_render(args.town, args.density, args.weather, frames=args.frames)
+    result = bench_render(args.town, args.density or "crowded", args.weather or "HardRainNoon", frames=args.frames)
     if args.json:
         print(json.dumps(result, indent=1))
     else:
@@ -123,7 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=_episode)
 
-    v = sub.add_parser("view", help="write camera frames of an episode as a PNG (one step) or an MP4")
+    v = sub.add_parser("view", help="camera frames of an episode or a recording as a PNG or an MP4")
+    v.add_argument("recording", nargs="?", help="a .mcap recording to show instead of running an episode "
+                   "(PNG: --step, or a contact sheet without it)")
     v.add_argument("--town", default="02")
     v.add_argument("--route", type=int, default=0)
     v.add_argument("--density", default="normal")
@@ -131,18 +175,45 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--weather", default="ClearNoon", help="a weather, or 'all' for the six stacked (PNG)")
     v.add_argument("--agent", default="lanefollow")
     v.add_argument("--speed", type=float, default=6.0, help="lane follower's speed, m/s")
-    v.add_argument("--step", type=int, default=50, help="the step a PNG shows")
+    v.add_argument("--step", type=int, default=None, help="the step a PNG shows (default 50)")
     v.add_argument("--steps", type=int, default=200, help="steps an MP4 shows (0.1 s each)")
     v.add_argument("--render-workers", type=int, default=1, help="worker processes rendering (MP4)")
     v.add_argument("--out", default="view.png", help="a .png or .mp4 path")
     v.set_defaults(func=_view)
 
-    b = sub.add_parser("bench", help="benchmarks: 'render' (frames/s per core, stage costs)")
-    b.add_argument("what", choices=["render"])
+    rec = sub.add_parser("record", help="the expert drives random routes; one MCAP recording per episode")
+    rec.add_argument("--town", default="01")
+    rec.add_argument("--episodes", type=int, default=24)
+    rec.add_argument("--weathers", default="train", help="train, test, all or a comma-separated list")
+    rec.add_argument("--densities", default="none,normal,crowded")
+    rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)),
+                     help="episodes in parallel (processes)")
+    rec.add_argument("--max-steps", type=int, default=900, help="steps per episode at most (0.1 s each)")
+    rec.add_argument("--agent", default="expert")
+    rec.add_argument("--out", default=None, help="folder (default data/townNN)")
+    rec.add_argument("--json", action="store_true")
+    rec.set_defaults(func=_record)
+
+    rc = sub.add_parser("recover", help="salvage recordings whose writer was killed (.mcap.partial)")
+    rc.add_argument("files", nargs="+")
+    rc.set_defaults(func=_recover)
+
+    rr = sub.add_parser("render", help="re-render a recording (or a folder) under another weather")
+    rr.add_argument("recording")
+    rr.add_argument("--weather", required=True)
+    rr.add_argument("--out", required=True, help="a .mcap file, or a folder for a folder")
+    rr.add_argument("--render-workers", type=int, default=1)
+    rr.set_defaults(func=_render)
+
+    b = sub.add_parser("bench", help="benchmarks: 'render' (frames/s per core, stage costs), "
+                       "'record' (end-to-end recording frames/s per core)")
+    b.add_argument("what", choices=["render", "record"])
     b.add_argument("--town", default="01")
-    b.add_argument("--density", default="crowded")
-    b.add_argument("--weather", default="HardRainNoon", help="HardRainNoon: every effect on")
-    b.add_argument("--frames", type=int, default=240)
+    b.add_argument("--density", default=None, help="default: crowded (render), normal (record)")
+    b.add_argument("--weather", default=None, help="default: HardRainNoon, every effect on (render), ClearNoon (record)")
+    b.add_argument("--frames", type=int, default=240, help="frames to time (render) or record (record)")
+    b.add_argument("--agent", default="expert", help="record: the driving agent")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=_bench)
 

@@ -49,7 +49,8 @@ from bid_sim.snapshot import GREEN, RED, YELLOW, Snapshot
 from bid_sim.town_map import TownMap
 
 STAGES = ("transform", "clip", "sort", "fill", "effects")
-OUT_OF_TOWN_M = 150.0  # an ego this far outside the town's bounds is an error
+OUT_OF_TOWN_M = 150.0
+CELL_M = 10.0  # grid cell of the static-geometry cache  # an ego this far outside the town's bounds is an error
 RAIN_LAYERS = 8
 LAMP_COLOURS = {RED: (255, 46, 32), YELLOW: (255, 196, 30), GREEN: (50, 255, 120)}
 LAMP_OFF = (52, 48, 44)
@@ -139,6 +140,7 @@ class Renderer:
         self._mul_all = np.tile(bg.ground_mul, (1, n_cam, 1))
         self._add_all = np.tile(bg.ground_add, (1, n_cam, 1))
         self._canvas = np.empty_like(self._bg_all)
+        self._cells: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         wc = rig.canvas_shape[1]
         self._views = [self._canvas[:, c * wc:(c + 1) * wc] for c in range(n_cam)]
         self._sun = self.weather.sun_vector()
@@ -226,8 +228,9 @@ class Renderer:
         sc = self.scene
         r = self.view_m
         ex, ey = eye[0], eye[1]
-        wc = sc.wall_centre
-        idx = np.flatnonzero((wc[:, 0] - ex) ** 2 + (wc[:, 1] - ey) ** 2 < (r + sc.wall_radius) ** 2)
+        cand, _ = self._near_static(ex, ey)
+        wc = sc.wall_centre[cand]
+        idx = cand[(wc[:, 0] - ex) ** 2 + (wc[:, 1] - ey) ** 2 < (r + sc.wall_radius[cand]) ** 2]
         parts = [sc.walls.take(idx)]
         obj_xy, obj_rad = [], []
         lamps = _Lamps.none()
@@ -277,6 +280,24 @@ class Renderer:
         oxy = np.concatenate(obj_xy) if obj_xy else np.zeros((0, 2))
         orad = np.concatenate(obj_rad) if obj_rad else np.zeros(0)
         return faces, oxy, orad, lamps
+
+    def _near_static(self, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
+        """Walls and ground rings that may be in view range from anywhere in the eye's grid
+        cell (ascending indices), cached per cell: the exact range test then runs on these
+        few, and its result does not depend on the cache."""
+        key = (math.floor(x / CELL_M), math.floor(y / CELL_M))
+        hit = self._cells.get(key)
+        if hit is None:
+            sc = self.scene
+            cx, cy = (key[0] + 0.5) * CELL_M, (key[1] + 0.5) * CELL_M
+            reach = self.view_m + CELL_M * 0.7072  # the cell's half diagonal
+            wc, rc = sc.wall_centre, sc.ring_centre
+            walls = np.flatnonzero((wc[:, 0] - cx) ** 2 + (wc[:, 1] - cy) ** 2 < (reach + sc.wall_radius) ** 2)
+            rings = np.flatnonzero((rc[:, 0] - cx) ** 2 + (rc[:, 1] - cy) ** 2 < (reach + sc.ring_radius) ** 2)
+            if len(self._cells) >= 64:
+                self._cells.clear()
+            hit = self._cells[key] = (walls, rings)
+        return hit
 
     def _shade(self, faces: Faces, eye: np.ndarray) -> np.ndarray:
         """Face colours lit by the sun and fogged by distance: (F, 3) float."""
@@ -336,11 +357,12 @@ class Renderer:
         rings never overlap, and later layers are drawn over earlier ones)."""
         sc = self.scene
         ex, ey, ez = eye
-        cen = sc.ring_centre
-        near = np.flatnonzero((cen[:, 0] - ex) ** 2 + (cen[:, 1] - ey) ** 2 < (self.view_m + sc.ring_radius) ** 2)
+        _, cand = self._near_static(ex, ey)
+        cen = sc.ring_centre[cand]
+        near = cand[(cen[:, 0] - ex) ** 2 + (cen[:, 1] - ey) ** 2 < (self.view_m + sc.ring_radius[cand]) ** 2]
         if len(near) == 0:
             return
-        rel = cen[near] - eye[None, :2]
+        rel = sc.ring_centre[near] - eye[None, :2]
         x = rel @ right.T  # (R, C)
         z = rel @ fwd.T
         rad = sc.ring_radius[near][:, None]

@@ -117,3 +117,71 @@ def view(town: str, route: int, density: str, seed: int, weather: str, out: str,
         n = write_mp4(pool.map(snaps), out)
     return f"wrote {out}: {n} frames at {VIDEO_FPS} fps ({n / VIDEO_FPS:.1f} s)"
 
+
+
+def rerender(src: str | os.PathLike, weather: str, out: str | os.PathLike, workers: int = 1,
+             seed: int | None = None) -> str:
+    """Re-renders a recording (or a folder of them) from its scene states under another
+    weather, into a new recording with the same steps, controls and states."""
+    from bid_sim.recording import EpisodeWriter, read_facts, read_snapshots
+
+    check_weather(weather)
+    src, out = Path(src), Path(out)
+    if src.is_dir():
+        files = sorted(src.glob("*.mcap"))
+        if not files:
+            raise BidError(f"{src} holds no finished recordings (*.mcap)")
+        pairs = [(f, out / f.name.replace(read_facts(f)["weather"], weather)) for f in files]
+    else:
+        if out.suffix != ".mcap":
+            raise BidError(f"--out {out}: give a .mcap file (or a folder when re-rendering a folder)")
+        pairs = [(src, out)]
+    frames = 0
+    for f, dst in pairs:
+        facts = read_facts(f)
+        town = resolve_town(facts["town"][-2:] if facts["town"].startswith("Town") else facts["town"])
+        from bid_sim.town_map import load_town_map
+
+        heads = [h.position for h in load_town_map(town).signal_heads]
+        ep_seed = int(facts.get("seed", 0)) if seed is None else seed
+        writer = EpisodeWriter(dst, {**facts, "weather": weather, "rendered_from": f.name}, heads)
+        try:
+            steps = list(read_snapshots(f))
+            with RenderPool(town, weather, workers=workers, seed=ep_seed) as pool:
+                for (snap, control), frame in zip(steps, pool.map(s for s, _ in steps), strict=True):
+                    writer.write(snap, frame, control)
+        except BaseException:
+            writer.abort()
+            raise
+        writer.finish({"status": "rerendered", "steps": len(steps)})
+        frames += writer.frames
+    return f"re-rendered {len(pairs)} recording(s), {frames} frames under {weather} -> {out}"
+
+
+def view_recording(path: str | os.PathLike, out: str, step: int | None = None, sheet: int = 6) -> str:
+    """A recording's frames as recorded: an MP4 of all, a PNG of one step, or (PNG without a
+    step) a contact sheet of `sheet` frames spread over the episode, captioned."""
+    from bid_sim.recording import decode_jpeg, read_episode
+    from bid_sim.routes import COMMAND_NAMES
+
+    suffix = Path(out).suffix.lower()
+    if suffix not in (".png", ".mp4"):
+        raise BidError(f"--out {out!r}: write a .png (one frame or a contact sheet) or an .mp4")
+    ep = read_episode(path)
+    if len(ep) == 0:
+        raise BidError(f"{path} holds no camera frames")
+    if suffix == ".mp4":
+        n = write_mp4((decode_jpeg(j) for j in ep.jpeg), out)
+        return f"wrote {out}: {n} frames at {VIDEO_FPS} fps ({n / VIDEO_FPS:.1f} s)"
+    if step is not None:
+        hit = np.flatnonzero(ep.steps == step)
+        if len(hit) == 0:
+            raise BidError(f"{path} has steps {ep.steps[0]}..{ep.steps[-1]}; step {step} is not among them")
+        idx = [int(hit[0])]
+    else:
+        idx = sorted({round(v) for v in np.linspace(0, len(ep) - 1, min(sheet, len(ep)))})
+    rows = [label(decode_jpeg(ep.jpeg[i]), f"{ep.facts.get('town', '')} {ep.facts.get('weather', '')} step "
+                  f"{ep.steps[i]}  {COMMAND_NAMES.get(int(ep.command[i]), '?')}  speed {ep.speed_mps[i]:.1f} m/s  "
+                  f"steer {ep.steer[i]:+.2f}  accel {ep.accel[i]:+.2f}") for i in idx]
+    write_png(np.vstack(rows), out)
+    return f"wrote {out}: {len(rows)} frame(s) from {Path(path).name}"

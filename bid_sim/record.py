@@ -1,0 +1,196 @@
+"""`bid record`: the expert drives random routes of a town across weathers and densities, one
+MCAP recording per episode (bid_sim.recording), episodes in parallel processes.
+
+The plan is a pure function of (town, episodes, weathers, densities, seed): episode i gets
+the i-th random route, weather i mod |weathers|, density (i div |weathers|) mod |densities|
+and its own seed. A re-run skips episodes whose recording is finished and re-records
+unfinished ones from the start (episodes are deterministic), so an interrupted run resumes.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from bid_sim import __version__
+from bid_sim.agents import make_agent
+from bid_sim.errors import BidError
+from bid_sim.recording import EpisodeWriter, partial_path
+from bid_sim.routes import RouteSpec, generate_routes
+from bid_sim.towns import resolve_town
+from bid_sim.weather import check_weather
+
+log = logging.getLogger(__name__)
+
+DENSITIES = ("none", "normal", "crowded")
+
+
+@dataclass(frozen=True)
+class EpisodeSpec:
+    index: int
+    town: str  # as given: 01, 02, 05 or a folder
+    route: RouteSpec
+    weather: str
+    density: str
+    seed: int
+    agent: str = "expert"
+    max_steps: int | None = None
+
+    @property
+    def name(self) -> str:
+        return f"ep{self.index:05d}_{self.weather}_{self.density}"
+
+
+def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
+                  seed: int, agent: str = "expert", max_steps: int | None = None) -> list[EpisodeSpec]:
+    if episodes < 1:
+        raise BidError(f"--episodes must be >= 1, got {episodes}")
+    if seed < 0:
+        raise BidError(f"--seed must be >= 0, got {seed}")
+    if not weathers or not densities:
+        raise BidError("give at least one weather and one density")
+    t = resolve_town(town)
+    for w in weathers:
+        check_weather(w)
+    for d in densities:
+        t.density(d)
+    routes = generate_routes(t, count=episodes, seed=10_000 + seed)
+    if len(routes) < episodes:
+        raise BidError(f"{t.name} yields only {len(routes)} random routes of >= 150 m; record fewer episodes")
+    nw = len(weathers)
+    return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
+                        seed * 100_000 + i, agent, max_steps) for i in range(episodes)]
+
+
+def record_episode(spec: EpisodeSpec, out: Path) -> dict:
+    """Drives and records one episode; returns its summary. Runs in a worker process."""
+    import cv2
+
+    from bid_sim.episode import run_episode
+    from bid_sim.render import Renderer
+    from bid_sim.town_map import load_town_map
+
+    cv2.setNumThreads(1)
+    t0, c0 = time.perf_counter(), time.process_time()
+    town = resolve_town(spec.town)
+    town_map = load_town_map(town)
+    renderer = Renderer(town_map, weather=spec.weather, seed=spec.seed)
+    facts = {"town": town.name, "route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->"
+             f"{spec.route.goal_edge}@{spec.route.goal_pos_m}", "episode": str(spec.index),
+             "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
+             "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
+             "step_s": "0.1", "software": f"bid-sim {__version__}"}
+    heads = [h.position for h in town_map.signal_heads]
+    writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
+    try:
+        result = run_episode(town, spec.route, spec.weather, spec.density, spec.seed, make_agent(spec.agent),
+                             recorder=writer, renderer=renderer, max_steps=spec.max_steps)
+    except BaseException:
+        writer.abort()
+        raise
+    writer.finish({"status": result.status, "steps": result.steps, "metrics": result.metrics,
+                   "infractions": [i.to_dict() for i in result.infractions]})
+    return {"name": spec.name, "frames": writer.frames, "status": result.status,
+            "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+
+
+def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
+           workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
+           progress: bool = True) -> dict:
+    """Records the plan's unfinished episodes into `out`; returns a summary."""
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise BidError(f"cannot write to {out} ({e.strerror}); pick a writable --out folder") from e
+    if workers < 1:
+        raise BidError(f"--workers must be >= 1, got {workers}")
+    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps)
+    todo = [s for s in specs if not (out / f"{s.name}.mcap").exists()]
+    for s in todo:
+        partial_path(out / f"{s.name}.mcap").unlink(missing_ok=True)  # restarted from scratch
+    done, failed = [], []
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(todo), unit="episode", disable=not progress, desc=f"recording {len(todo)} episodes")
+    frames = 0
+
+    def finished(summary: dict) -> None:
+        nonlocal frames
+        done.append(summary)
+        frames += summary["frames"]
+        bar.update(1)
+        bar.set_postfix(frames=frames, fps=f"{frames / max(time.perf_counter() - t0, 1e-9):.0f}")
+
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for s in todo:
+                try:
+                    finished(record_episode(s, out))
+                except Exception as e:  # one episode's failure does not stop the others
+                    failed.append((s.name, _reason(e)))
+        else:
+            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn")) as pool:
+                futures: dict[Future, EpisodeSpec] = {pool.submit(record_episode, s, out): s for s in todo}
+                pending = set(futures)
+                try:
+                    while pending:
+                        ready, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for fut in ready:
+                            try:
+                                finished(fut.result())
+                            except Exception as e:
+                                failed.append((futures[fut].name, _reason(e)))
+                except BaseException:
+                    for fut in pending:
+                        fut.cancel()
+                    raise
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t0
+    return {"out": str(out), "planned": len(specs), "skipped": len(specs) - len(todo), "recorded": len(done),
+            "failed": failed, "frames": frames, "wall_s": round(wall, 1),
+            "frames_per_s": round(frames / wall, 1) if wall > 0 else 0.0,
+            "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})}}
+
+
+def _reason(e: Exception) -> str:
+    return str(e) if isinstance(e, BidError) else f"{type(e).__name__}: {e}"
+
+
+def describe(summary: dict) -> str:
+    lines = [f"{summary['recorded']} episodes recorded ({summary['frames']} frames, {summary['frames_per_s']} "
+             f"frames/s over {summary['wall_s']} s), {summary['skipped']} already there, "
+             f"{len(summary['failed'])} failed -> {summary['out']}"]
+    if summary["statuses"]:
+        lines.append("  endings: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items()))
+    lines += [f"  failed {name}: {msg}" for name, msg in summary["failed"]]
+    return "\n".join(lines)
+
+
+def bench_record(town: str = "01", density: str = "normal", weather: str = "ClearNoon", steps: int = 600,
+                 agent: str = "expert") -> dict:
+    """End-to-end recording speed in this process on one core: SUMO, the agent, rendering,
+    JPEG and MCAP writing of one episode; frames per CPU second."""
+    import tempfile
+
+    spec = plan_episodes(town, 1, (weather,), (density,), seed=0, agent=agent, max_steps=steps)[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        record_episode(EpisodeSpec(spec.index, town, spec.route, weather, density, spec.seed, agent, 30), Path(tmp))
+        s = record_episode(spec, Path(tmp))
+        size = sum(f.stat().st_size for f in Path(tmp).glob("*.mcap"))
+    return {"town": town, "density": density, "weather": weather, "agent": agent, "frames": s["frames"],
+            "status": s["status"], "wall_s": round(s["seconds"], 2), "cpu_s": round(s["cpu_seconds"], 2),
+            "record_fps_per_core": round(s["frames"] / s["cpu_seconds"], 1),
+            "record_fps_wall": round(s["frames"] / s["seconds"], 1),
+            "record_fps_target_ratio": round(s["frames"] / s["cpu_seconds"] / 100.0, 3),
+            "kb_per_frame": round(size / 1024 / max(1, s["frames"] + 30), 1)}
