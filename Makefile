@@ -13,7 +13,12 @@ WORKERS ?= 2
 # `make record` records Town01 unless TOWN is given (the demo's default is Town02).
 RECORD_TOWN = $(if $(filter command line environment,$(origin TOWN)),$(TOWN),01)
 
-.PHONY: demo test bench towns clean lint record
+AGENT ?= bid
+CHECKPOINT ?= runs/small/best.pt
+WEATHERS ?= test
+SEEDS ?= 3
+
+.PHONY: demo test bench towns clean lint record evaluate
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -34,6 +39,12 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_world.py
 	$(BID) bench render
 	$(BID) bench record
+
+# The closed-loop benchmark; AGENT=expert needs no checkpoint.
+evaluate: $(STAMP)
+	$(BID) evaluate --town $(TOWN) --density $(DENSITY) --weathers $(WEATHERS) --seeds $(SEEDS) \
+		--agent $(AGENT) $(if $(filter bid,$(AGENT)),--checkpoint $(CHECKPOINT)) --workers $(WORKERS) \
+		--out results/town$(TOWN)_$(AGENT)_$(DENSITY)
 
 # Demonstrations: the expert over random routes, four train weathers, three densities.
 record: $(STAMP)

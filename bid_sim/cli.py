@@ -111,6 +111,27 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate(args: argparse.Namespace) -> int:
+    from bid_sim.evaluate import compare, evaluate
+    from bid_sim.weather import parse_weathers
+
+    if args.compare:
+        print(compare(args.compare))
+        return 0
+    densities = tuple(d.strip() for d in args.density.split(",") if d.strip())
+    routes = [int(r) for r in args.routes.split(",")] if args.routes else None
+    out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
+    summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
+                       checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
+                       video=args.video, progress=not args.json)
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        print((Path(out) / "summary.md").read_text())
+        print(f"-> {out}/episodes.jsonl, summary.json, summary.md")
+    return 0
+
+
 def _bench(args: argparse.Namespace) -> int:
     if args.what == "record":
         from bid_sim.record import bench_record
@@ -205,6 +226,22 @@ def build_parser() -> argparse.ArgumentParser:
     rr.add_argument("--out", required=True, help="a .mcap file, or a folder for a folder")
     rr.add_argument("--render-workers", type=int, default=1)
     rr.set_defaults(func=_render)
+
+    ev = sub.add_parser("evaluate", help="closed-loop benchmark: every route x weathers x seeds, scored")
+    ev.add_argument("--town", default="02")
+    ev.add_argument("--density", default="none,normal,crowded", help="one or a comma-separated list")
+    ev.add_argument("--weathers", default="test", help="train, test, all or a comma-separated list")
+    ev.add_argument("--seeds", type=int, default=3)
+    ev.add_argument("--agent", default="expert", help="expert, lanefollow, bid or module:Class")
+    ev.add_argument("--checkpoint", default=None, help="the model checkpoint for --agent bid")
+    ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
+    ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
+    ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")
+    ev.add_argument("--video", action="store_true", help="write each episode's MP4 with overlays")
+    ev.add_argument("--out", default=None, help="results folder (default results/TOWN_AGENT_DENSITY)")
+    ev.add_argument("--compare", nargs="+", default=None, metavar="RESULTS", help="print results folders side by side")
+    ev.add_argument("--json", action="store_true")
+    ev.set_defaults(func=_evaluate)
 
     b = sub.add_parser("bench", help="benchmarks: 'render' (frames/s per core, stage costs), "
                        "'record' (end-to-end recording frames/s per core)")

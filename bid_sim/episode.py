@@ -147,6 +147,7 @@ def run_episode(
         snap = _with_light(snap, progress, lights, params)
         agent.reset(info)
         prev_frame = None
+        noted = 0  # infractions passed on to the recorder's note(), if it has one
         while True:
             frame = renderer.render(snap) if renderer is not None else None
             obs = Observation(frame, prev_frame if prev_frame is not None else frame,
@@ -154,6 +155,10 @@ def run_episode(
             control = agent.act(obs)
             if recorder is not None:
                 recorder.write(snap, frame, control)
+                if hasattr(recorder, "note"):
+                    for inf in monitor.infractions[noted:]:
+                        recorder.note(inf)
+                    noted = len(monitor.infractions)
             prev_frame = frame
             new = step(ego, control, params, DT_S)
             world.advance(new)

@@ -260,7 +260,8 @@ def aggregate(
     return result
 
 
-def _cell(group_stats: Mapping[str, Any], key: str) -> str:
+def cell(group_stats: Mapping[str, Any], key: str) -> str:
+    """One table cell: "mean ± std" for scores, integers for counts."""
     value = group_stats[key]
     if key in COUNT_KEYS or key in ("episodes", "seeds"):
         return str(int(value))
@@ -290,5 +291,5 @@ def format_table(stats_by_group: Mapping[Any, Mapping[str, Any]], keys: Sequence
                 f"unknown metric {missing[0]!r} for the table; choose from "
                 + ", ".join(k for k in group_stats if not k.endswith("_std"))
             )
-        lines.append(f"| {group} | " + " | ".join(_cell(group_stats, k) for k in keys) + " |")
+        lines.append(f"| {group} | " + " | ".join(cell(group_stats, k) for k in keys) + " |")
     return "\n".join(lines)

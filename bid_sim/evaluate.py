@@ -1,0 +1,338 @@
+"""`bid evaluate`: the closed-loop benchmark (DESIGN.md section 7). Every route of a town ×
+weathers × seeds at one or more densities, driven by an agent in parallel processes, scored
+per episode; results are appended as episodes finish, so an interrupted run resumes.
+
+Agents: `expert` and `lanefollow` (privileged, no camera), `bid` (the model package's
+camera agent, found through the "bid.agents" entry point group, needs --checkpoint), or a
+user's class given as `module:Class` (constructed with no arguments, or with
+checkpoint=PATH when one is given; it sees camera frames unless it sets
+`uses_camera = False`).
+
+results/NAME/
+  config.json      what was asked (a resume must ask the same)
+  episodes.jsonl   one line per finished episode: ids, metrics, infractions
+  summary.json     SR, SSR, RC, IP, DS (mean and _std over seeds), counts and per-km
+                   rates, for the whole run and per density and weather
+  summary.md       the same as tables laid out like the paper's
+  videos/, recordings/  with --video / --record
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import json
+import multiprocessing as mp
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from bid_sim import __version__
+from bid_sim import metrics as m
+from bid_sim.agents import AGENTS, make_agent
+from bid_sim.errors import BidError
+from bid_sim.routes import load_routes
+from bid_sim.towns import resolve_town
+from bid_sim.weather import check_weather
+
+PRIVILEGED = {"expert", "lanefollow"}
+
+
+@dataclass(frozen=True)
+class EvalEpisode:
+    town: str
+    route: int
+    weather: str
+    density: str
+    seed: int
+
+    @property
+    def key(self) -> str:
+        return f"{self.density}/{self.weather}/r{self.route:02d}/s{self.seed}"
+
+    @property
+    def name(self) -> str:
+        return f"{self.density}_{self.weather}_r{self.route:02d}_s{self.seed}"
+
+
+def plan_eval(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int,
+              routes: list[int] | None = None) -> list[EvalEpisode]:
+    t = resolve_town(town)
+    for d in densities:
+        t.density(d)
+    for w in weathers:
+        check_weather(w)
+    if seeds < 1:
+        raise BidError(f"--seeds must be >= 1, got {seeds}")
+    n = len(load_routes(t))
+    idx = list(range(n)) if routes is None else routes
+    bad = [r for r in idx if not 0 <= r < n]
+    if bad:
+        raise BidError(f"route {bad[0]} out of range; {t.name} has routes 0..{n - 1}")
+    return [EvalEpisode(town, r, w, d, s) for d in densities for w in weathers for r in idx for s in range(seeds)]
+
+
+# ----------------------------------------------------------------------------- agents
+
+def load_agent(spec: str, checkpoint: str | None = None):
+    """An agent instance from a name or `module:Class` (BidError naming the problem)."""
+    if spec in AGENTS:
+        return make_agent(spec)
+    if ":" not in spec:
+        eps = {ep.name: ep for ep in importlib.metadata.entry_points(group="bid.agents")}
+        if spec in eps:
+            if checkpoint is None:
+                raise BidError(f"the {spec!r} agent needs --checkpoint PATH (a run's best.pt or last.pt)")
+            return eps[spec].load()(checkpoint)
+        known = sorted({*AGENTS, *eps})
+        raise BidError(f"unknown agent {spec!r}; use one of {', '.join(known)} or module:Class")
+    module, _, cls = spec.partition(":")
+    try:
+        factory = getattr(importlib.import_module(module), cls)
+    except (ImportError, AttributeError) as e:
+        raise BidError(f"cannot load agent {spec!r} ({type(e).__name__}: {e}); give an importable "
+                       "module:Class") from e
+    agent = factory(checkpoint=checkpoint) if checkpoint is not None else factory()
+    for method in ("reset", "act"):
+        if not callable(getattr(agent, method, None)):
+            raise BidError(f"agent {spec!r} has no {method}() method; see bid_sim.agents.Agent")
+    return agent
+
+
+def uses_camera(spec: str, agent) -> bool:
+    return spec not in PRIVILEGED and bool(getattr(agent, "uses_camera", True))
+
+
+# ----------------------------------------------------------------------------- workers
+
+_STATE: dict[str, Any] = {}
+
+
+def _init_worker(agent_spec: str, checkpoint: str | None) -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    _STATE["agent"] = load_agent(agent_spec, checkpoint)
+    _STATE["spec"] = agent_spec
+    _STATE["renderers"] = {}
+
+
+def _renderer(town, weather: str, seed: int):
+    from bid_sim.render import Renderer
+    from bid_sim.town_map import load_town_map
+
+    key = (town.name, weather, seed)
+    cache = _STATE["renderers"]
+    if key not in cache:
+        cache.clear()
+        cache[key] = Renderer(load_town_map(town), weather=weather, seed=seed)
+    return cache[key]
+
+
+def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: bool) -> dict:
+    """One episode in this worker; returns its line for episodes.jsonl."""
+    from bid_sim.episode import run_episode
+
+    agent, spec = _STATE["agent"], _STATE["spec"]
+    town = resolve_town(ep.town)
+    camera = uses_camera(spec, agent) or record or video
+    renderer = _renderer(town, ep.weather, ep.seed) if camera else None
+    recorders, writer, vid = [], None, None
+    if record:
+        from bid_sim.recording import EpisodeWriter
+        from bid_sim.town_map import load_town_map
+
+        facts = {"town": town.name, "route": str(ep.route), "weather": ep.weather, "density": ep.density,
+                 "seed": str(ep.seed), "agent": spec, "software": f"bid-sim {__version__}"}
+        writer = EpisodeWriter(Path(out) / "recordings" / f"{ep.name}.mcap", facts,
+                               [h.position for h in load_town_map(town).signal_heads])
+        recorders.append(writer)
+    if video:
+        from bid_sim.render.overlay import VideoRecorder
+
+        vid = VideoRecorder(Path(out) / "videos" / f"{ep.name}.mp4", agent)
+        recorders.append(vid)
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        result = run_episode(town, ep.route, ep.weather, ep.density, ep.seed, agent,
+                             recorder=_Tee(recorders) if recorders else None, renderer=renderer, replan=True)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        if vid is not None:
+            vid.abort()
+        raise
+    if writer is not None:
+        writer.finish({"status": result.status, "metrics": result.metrics})
+    if vid is not None:
+        vid.finish()
+    line = {"key": ep.key, **result.to_dict(), "row": result.row(),
+            "wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3)}
+    return line
+
+
+class _Tee:
+    """Several recorders as one."""
+
+    def __init__(self, recorders: list) -> None:
+        self.recorders = recorders
+
+    def write(self, snap, frame, control) -> None:
+        for r in self.recorders:
+            r.write(snap, frame, control)
+
+    def note(self, infraction) -> None:
+        for r in self.recorders:
+            if hasattr(r, "note"):
+                r.note(infraction)
+
+
+# ----------------------------------------------------------------------------- the run
+
+def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int, agent: str,
+             out: str | os.PathLike, checkpoint: str | None = None, workers: int = 1,
+             routes: list[int] | None = None, record: bool = False, video: bool = False,
+             progress: bool = True) -> dict:
+    """Runs the plan's unfinished episodes, appending to episodes.jsonl; writes the summary."""
+    out = Path(out)
+    plan = plan_eval(town, densities, weathers, seeds, routes)
+    if checkpoint is not None and not Path(checkpoint).exists():
+        raise BidError(f"checkpoint {checkpoint} does not exist; give a run's best.pt or last.pt")
+    load_agent(agent, checkpoint)  # fail here, once, before any worker starts
+    config = {"town": resolve_town(town).name, "densities": list(densities), "weathers": list(weathers),
+              "seeds": seeds, "agent": agent, "checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
+              "routes": routes, "software": f"bid-sim {__version__}"}
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BidError(f"cannot create {out} ({e.strerror}); pick a writable --out") from e
+    cfg_path = out / "config.json"
+    if cfg_path.exists():
+        old = json.loads(cfg_path.read_text())
+        diff = [k for k in config if k != "software" and old.get(k) != config[k]]
+        if diff:
+            raise BidError(f"{out} holds results of another configuration ({', '.join(diff)} differ); "
+                           "use another --out, or the same options to resume")
+    else:
+        cfg_path.write_text(json.dumps(config, indent=1))
+    lines_path = out / "episodes.jsonl"
+    done = {ln["key"]: ln for ln in read_lines(lines_path)}
+    todo = [ep for ep in plan if ep.key not in done]
+    bar = tqdm(total=len(plan), initial=len(plan) - len(todo), unit="episode", disable=not progress,
+               desc=f"{config['town']} {agent}")
+    steps = 0
+    t0 = time.perf_counter()
+
+    def finished(line: dict) -> None:
+        nonlocal steps
+        with lines_path.open("a") as f:
+            f.write(json.dumps(line) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        done[line["key"]] = line
+        steps += line["steps"]
+        bar.update(1)
+        bar.set_postfix(steps_per_s=f"{steps / max(time.perf_counter() - t0, 1e-9):.0f}")
+
+    try:
+        if workers <= 1 or len(todo) <= 1:
+            _init_worker(agent, checkpoint)
+            for ep in todo:
+                finished(run_eval_episode(ep, str(out), record, video))
+        else:
+            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn"),
+                                     initializer=_init_worker, initargs=(agent, checkpoint)) as pool:
+                futures: dict[Future, EvalEpisode] = {pool.submit(run_eval_episode, ep, str(out), record, video): ep
+                                                      for ep in todo}
+                pending = set(futures)
+                try:
+                    while pending:
+                        ready, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for fut in ready:
+                            finished(fut.result())
+                except BaseException:
+                    for fut in pending:
+                        fut.cancel()
+                    raise
+    finally:
+        bar.close()
+    ordered = [done[ep.key] for ep in plan]
+    summary = summarise(ordered, config)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.md").write_text(summary_markdown(summary))
+    return summary
+
+
+def read_lines(path: Path) -> list[dict]:
+    """Finished episodes of a results file; a torn last line (a killed run) is dropped."""
+    if not path.exists():
+        return []
+    out = []
+    for i, text in enumerate(path.read_text().splitlines()):
+        if not text.strip():
+            continue
+        try:
+            out.append(json.loads(text))
+        except json.JSONDecodeError as e:
+            raise BidError(f"{path} line {i + 1} is damaged; delete that line to resume") from e
+    return out
+
+
+def summarise(lines: list[dict], config: dict) -> dict:
+    rows = [ln["row"] for ln in lines]
+    agg = m.aggregate(rows, group_by=("density", "weather"))
+    steps = sum(ln["steps"] for ln in lines)
+    cpu = sum(ln.get("cpu_s", 0.0) for ln in lines)
+    return {"config": config, **agg, "steps": steps,
+            "eval_steps_per_s_per_core": round(steps / cpu, 1) if cpu > 0 else None}
+
+
+PAPER_KEYS_NOCRASH = ("SR", "SSR", "TL", "RC", "DS", "CV", "CP", "CL", "episodes")
+PAPER_KEYS_LEADERBOARD = ("RC", "DS", "CV", "CP", "CL", "TL", "OL", "RD", "ABD", "episodes")
+
+
+def summary_markdown(summary: dict) -> str:
+    cfg = summary["config"]
+    keys = PAPER_KEYS_LEADERBOARD if cfg["town"] == "Town05" else PAPER_KEYS_NOCRASH
+    head = "APA = RC, ADG = DS (the paper's Town05 names)\n\n" if cfg["town"] == "Town05" else ""
+    parts = [f"# {cfg['town']} · agent {cfg['agent']} · weathers {', '.join(cfg['weathers'])} · "
+             f"{cfg['seeds']} seed(s)\n", head,
+             "## By density\n", m.format_table(summary["by_density"], keys), "\n",
+             "## By weather\n", m.format_table(summary["by_weather"], keys), "\n",
+             "## All\n", m.format_table({"all": summary["all"]}, keys), "\n"]
+    return "\n".join(p for p in parts if p)
+
+
+def compare(folders: list[str]) -> str:
+    """A side-by-side table of several results folders (whole-run figures per density)."""
+    cols, rows = [], {}
+    for f in folders:
+        path = Path(f) / "summary.json"
+        if not path.exists():
+            raise BidError(f"{path} does not exist; run `bid evaluate --out {f}` first")
+        s = json.loads(path.read_text())
+        name = f"{Path(f).name} ({s['config']['agent']})"
+        if name in cols:
+            name = f"{name} #{len(cols) + 1}"
+        cols.append(name)
+        for group, st in [("all", s["all"]), *s["by_density"].items()]:
+            for key in ("SR", "SSR", "RC", "DS", "TL", "CV", "CP", "CL"):
+                rows.setdefault((group, key), {})[name] = m.cell(st, key)
+    lines = ["| group | metric | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
+    for (group, key), vals in rows.items():
+        lines.append(f"| {group} | {key} | " + " | ".join(vals.get(c, "—") for c in cols) + " |")
+    return "\n".join(lines)
+
+
+__all__ = ["EvalEpisode", "compare", "evaluate", "load_agent", "plan_eval"]

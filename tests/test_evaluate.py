@@ -1,0 +1,88 @@
+"""Closed-loop benchmark runs on real SUMO: files, resume, parallel == serial, agents by
+name or module:Class, bad input."""
+
+import json
+
+import pytest
+
+from bid_sim.cli import main
+from bid_sim.evaluate import evaluate, load_agent, read_lines
+
+RUN = {"town": "02", "densities": ("none",), "weathers": ("WetSunset",), "seeds": 1, "routes": [0, 3],
+       "agent": "bid_sim.agents:LaneFollower", "progress": False}
+
+
+@pytest.fixture(scope="module")
+def serial(tmp_path_factory):
+    out = tmp_path_factory.mktemp("serial")
+    return out, evaluate(out=out, workers=1, **RUN)
+
+
+def test_files_and_summary(serial):
+    out, summary = serial
+    lines = read_lines(out / "episodes.jsonl")
+    assert [ln["key"] for ln in lines] == ["none/WetSunset/r00/s0", "none/WetSunset/r03/s0"]
+    for ln in lines:
+        assert {"SR", "SSR", "RC", "IP", "DS", "CV", "CP", "CL", "TL", "OL", "RD", "ABD"} <= set(ln["metrics"])
+        assert ln["status"] in ("completed", "blocked", "route_deviation", "timeout")
+        for inf in ln["infractions"]:
+            assert {"kind", "time_s", "x_m", "y_m"} <= set(inf)
+    s = json.loads((out / "summary.json").read_text())
+    for key in ("SR", "SR_std", "SSR", "RC", "IP", "DS", "CV", "CV_per_km", "TL", "episodes"):
+        assert key in s["all"], key
+    assert set(s["by_density"]) == {"none"} and set(s["by_weather"]) == {"WetSunset"}
+    assert s["all"]["episodes"] == 2
+    md = (out / "summary.md").read_text()
+    assert "| SR | SSR | TL |" in md and "## By density" in md
+    assert summary["eval_steps_per_s_per_core"] > 0
+
+
+def test_parallel_and_resumed_runs_match_serial(serial, tmp_path):
+    out, summary = serial
+    par = evaluate(out=tmp_path / "par", workers=2, **RUN)
+    assert par["all"] == summary["all"]
+    # A run killed after its first episode resumes with the second only.
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    lines = (out / "episodes.jsonl").read_text().splitlines()
+    (resumed / "episodes.jsonl").write_text(lines[0] + "\n")
+    (resumed / "config.json").write_text((out / "config.json").read_text())
+    again = evaluate(out=resumed, workers=1, **RUN)
+    assert again["all"] == summary["all"]
+    assert len(read_lines(resumed / "episodes.jsonl")) == 2
+
+
+def test_other_configuration_is_refused(serial, capsys):
+    out, _ = serial
+    assert main(["evaluate", "--town", "02", "--density", "none", "--weathers", "WetSunset", "--seeds", "2",
+                 "--routes", "0,3", "--agent", "bid_sim.agents:LaneFollower", "--out", str(out)]) == 2
+    assert "another configuration (seeds differ)" in capsys.readouterr().err
+
+
+def test_compare(serial, tmp_path, capsys):
+    out, _ = serial
+    assert main(["evaluate", "--compare", str(out), str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "| all | SR |" in table
+    assert table.splitlines()[0].count("(bid_sim.agents:LaneFollower)") == 2
+    assert main(["evaluate", "--compare", str(tmp_path / "none")]) == 2
+
+
+@pytest.mark.parametrize(("agent", "words"), [("pilot", "unknown agent 'pilot'"),
+                                               ("nosuch.module:Agent", "cannot load agent"),
+                                               ("bid_sim.agents:Nope", "cannot load agent")])
+def test_bad_agents(agent, words, tmp_path, capsys):
+    assert main(["evaluate", "--town", "02", "--agent", agent, "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and "\n" not in err
+
+
+def test_missing_checkpoint(tmp_path, capsys):
+    assert main(["evaluate", "--town", "02", "--agent", "expert", "--checkpoint", str(tmp_path / "x.pt"),
+                 "--out", str(tmp_path / "r")]) == 2
+    assert "checkpoint" in capsys.readouterr().err
+
+
+def test_named_agents_load():
+    assert type(load_agent("lanefollow")).__name__ == "LaneFollower"
+    assert type(load_agent("bid_sim.agents:LaneFollower")).__name__ == "LaneFollower"
