@@ -116,13 +116,7 @@ _STATE: dict[str, Any] = {}
 def _init_worker(agent_spec: str, checkpoint: str | None) -> None:
     import cv2
 
-    cv2.setNumThreads(1)
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-    except ImportError:
-        pass
+    cv2.setNumThreads(1)  # one core per worker; a torch agent sets its own threads
     _STATE["agent"] = load_agent(agent_spec, checkpoint)
     _STATE["spec"] = agent_spec
     _STATE["renderers"] = {}
