@@ -2,10 +2,6 @@
 
 import pytest
 
-# Load torch before any test starts SUMO: a C++ extension first loaded after libsumo has
-# raised an error makes the next SUMO start segfault (see bid_sim/__init__.py).
-import torch  # noqa: F401
-
 from bid_sim.routes import plan_spec, road_graph, route_by_index
 from bid_sim.towns import resolve_town
 

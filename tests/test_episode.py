@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 
 import pytest
 
@@ -51,12 +53,20 @@ def test_negative_seed(town02):
         run_episode(town02, 0, "ClearNoon", "none", -1, LaneFollower())
 
 
-def test_sumo_error_mid_episode_is_a_bid_error(town02):
-    import libsumo as traci
-
-    def lose_the_ego(world):
-        traci.vehicle.remove("ego")
-
-    with pytest.raises(BidError, match="SUMO failed at step 0"):
-        run_episode(town02, 0, "ClearNoon", "none", 0, LaneFollower(), on_start=lose_the_ego, max_steps=20)
-    assert not traci.isLoaded()
+def test_sumo_error_mid_episode_is_a_bid_error():
+    """Run in its own process: after this error libsumo 1.28 can leave the process unable to
+    start SUMO again once GEOS (shapely) has run in between (it segfaults)."""
+    code = (
+        "import libsumo as traci, pytest\n"
+        "from bid_sim.agents import LaneFollower\n"
+        "from bid_sim.episode import run_episode\n"
+        "from bid_sim.errors import BidError\n"
+        "def lose_the_ego(world):\n"
+        "    traci.vehicle.remove('ego')\n"
+        "with pytest.raises(BidError, match='SUMO failed at step 0'):\n"
+        "    run_episode('02', 0, 'ClearNoon', 'none', 0, LaneFollower(), on_start=lose_the_ego, max_steps=20)\n"
+        "assert not traci.isLoaded()\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
