@@ -89,15 +89,17 @@ class Faces:
     colours: np.ndarray  # (F, 3) base RGB
     obj: np.ndarray  # (F,) object index (actors, signals) or -1 for a wall
     sub: np.ndarray  # (F,) drawing order inside its object (later = higher)
+    centre: np.ndarray  # (F, 3) mean of the corners
 
     @staticmethod
     def empty() -> Faces:
         return Faces(np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
-                     np.zeros(0, np.int64), np.zeros(0, np.int64))
+                     np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
 
     def take(self, idx: np.ndarray) -> Faces:
         """The faces at these indices (copies)."""
-        return Faces(self.quads[idx], self.normals[idx], self.colours[idx], self.obj[idx], self.sub[idx])
+        return Faces(self.quads[idx], self.normals[idx], self.colours[idx], self.obj[idx], self.sub[idx],
+                     self.centre[idx])
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,9 +213,9 @@ def _walls(town_map: TownMap) -> tuple[Faces, np.ndarray, np.ndarray]:
                 colours.append(base)
     q = np.array(quads, dtype=np.float64).reshape(-1, 4, 3)
     n = len(q)
-    faces = Faces(q, np.array(normals).reshape(-1, 3), np.array(colours).reshape(-1, 3),
-                  np.full(n, -1, np.int64), np.zeros(n, np.int64))
     centre = q.mean(axis=1)
+    faces = Faces(q, np.array(normals).reshape(-1, 3), np.array(colours).reshape(-1, 3),
+                  np.full(n, -1, np.int64), np.zeros(n, np.int64), centre)
     radius = np.linalg.norm(q - centre[:, None, :], axis=2).max(axis=1) if n else np.zeros(0)
     return faces, centre, radius
 
@@ -238,8 +240,10 @@ def _signals(town_map: TownMap) -> tuple[Faces, np.ndarray, np.ndarray, np.ndarr
     k = quads.shape[1]
     assert k == FACES_PER_HEAD
     colours = np.concatenate([np.broadcast_to(POLE, (h, 4, 3)), np.broadcast_to(HOUSING, (h, 6, 3))], axis=1)
-    faces = Faces(quads.reshape(-1, 4, 3), normals.reshape(-1, 3), colours.reshape(-1, 3),
-                  np.repeat(np.arange(h), k), np.tile(np.r_[np.zeros(4), np.ones(6)].astype(np.int64), h))
+    q = quads.reshape(-1, 4, 3)
+    faces = Faces(q, normals.reshape(-1, 3), colours.reshape(-1, 3),
+                  np.repeat(np.arange(h), k), np.tile(np.r_[np.zeros(4), np.ones(6)].astype(np.int64), h),
+                  q.mean(axis=1))
     fvec = np.stack([np.cos(facing), np.sin(facing)], axis=1)
     front = pos[:, :2] + fvec * (HOUSING_HALF[0] + 0.02)
     lamps = np.empty((h, 3, 3))
@@ -315,8 +319,10 @@ def vehicle_faces(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray, colour: np.
     cols[:, 4:9] = paint[:, None, :]
     cols[:, 9:13] = GLASS
     cols[:, 13] = paint
-    return Faces(quads.reshape(-1, 4, 3), normals.reshape(-1, 3), cols.reshape(-1, 3),
-                 np.repeat(np.arange(first_obj, first_obj + n), k), np.tile(_VEHICLE_SUB, n))
+    q = quads.reshape(-1, 4, 3)
+    centre = 0.25 * (q[:, 0] + q[:, 1] + q[:, 2] + q[:, 3])
+    return Faces(q, normals.reshape(-1, 3), cols.reshape(-1, 3),
+                 np.repeat(np.arange(first_obj, first_obj + n), k), np.tile(_VEHICLE_SUB, n), centre)
 
 
 # A pedestrian's three billboard parts (legs, torso, head): corners as (sideways, up)
@@ -347,8 +353,12 @@ def pedestrian_faces(xy: np.ndarray, size: np.ndarray, colour: np.ndarray, eye: 
     normals = np.zeros((n, 3, 3))
     normals[..., 0] = tx[:, None]
     normals[..., 1] = ty[:, None]
+    centre = np.empty((n, 3, 3))
+    centre[..., 0], centre[..., 1] = xy[:, 0, None], xy[:, 1, None]
+    centre[..., 2] = 0.5 * (_PED_UP[..., 0] + _PED_UP[..., 2]) * h[:, None]
     return Faces(quads.reshape(-1, 4, 3), normals.reshape(-1, 3), cols.reshape(-1, 3),
-                 np.repeat(np.arange(first_obj, first_obj + n), 3), np.tile(np.arange(3), n))
+                 np.repeat(np.arange(first_obj, first_obj + n), 3), np.tile(np.arange(3), n),
+                 centre.reshape(-1, 3))
 
 
 def concat(parts: list[Faces]) -> Faces:
@@ -356,4 +366,4 @@ def concat(parts: list[Faces]) -> Faces:
     if not parts:
         return Faces.empty()
     return Faces(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                   ("quads", "normals", "colours", "obj", "sub")))
+                   ("quads", "normals", "colours", "obj", "sub", "centre")))

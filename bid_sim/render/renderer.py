@@ -143,6 +143,8 @@ class Renderer:
         self._cells: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
         wc = rig.canvas_shape[1]
         self._views = [self._canvas[:, c * wc:(c + 1) * wc] for c in range(n_cam)]
+        h, w = rig.height_px, rig.width_px
+        self._crops = [v[MARGIN_PX:MARGIN_PX + h, MARGIN_PX:MARGIN_PX + w] for v in self._views]
         self._sun = self.weather.sun_vector()
         self._light = np.array(self.weather.light)
         self._fog_colour = np.array(self.weather.sky_horizon, dtype=np.float64)
@@ -179,10 +181,7 @@ class Renderer:
         cv2.add(roi, self._add_all, dst=roi)
         clock.lap("effects")
         self._draw_faces(faces, keys, cols, lamps, lamp_keys, eye, fwd, right, clock)
-        h, w = rig.height_px, rig.width_px
-        frame = np.empty(rig.frame_shape, np.uint8)
-        for c, view in enumerate(self._views):
-            frame[:, c * w:(c + 1) * w] = view[MARGIN_PX:MARGIN_PX + h, MARGIN_PX:MARGIN_PX + w]
+        frame = np.concatenate(self._crops, axis=1)
         if bg.rain:
             k = (self.seed * 1_000_003 + snapshot.step * 7919) % len(bg.rain)
             cv2.add(frame, bg.rain[k], dst=frame)
@@ -305,8 +304,8 @@ class Renderer:
         lam = w.ambient + w.diffuse * np.clip(faces.normals @ self._sun, 0.0, None)
         col = faces.colours * lam[:, None] * self._light[None, :]
         if len(faces.quads):
-            c = faces.quads.mean(axis=1)
-            d = np.sqrt(((c - eye) ** 2).sum(axis=1))
+            c = faces.centre
+            d = np.sqrt((c[:, 0] - eye[0]) ** 2 + (c[:, 1] - eye[1]) ** 2 + (c[:, 2] - eye[2]) ** 2)
             fog = w.fog(d)[:, None]
             col = col * (1 - fog) + self._fog_colour[None, :] * fog
         return np.clip(col, 0, 255)
@@ -326,7 +325,8 @@ class Renderer:
         wi = np.flatnonzero(is_wall)
         oi = np.flatnonzero(~is_wall)
         wq = faces.quads[wi]
-        wall_d = np.hypot(wq[:, :, 0].mean(axis=1) - eye[0], wq[:, :, 1].mean(axis=1) - eye[1])
+        wc = faces.centre[wi]
+        wall_d = np.hypot(wc[:, 0] - eye[0], wc[:, 1] - eye[1])
         rel = obj_xy - eye[None, :2]
         obj_d = np.hypot(rel[:, 0], rel[:, 1])
         key_obj = obj_d.copy()
