@@ -18,7 +18,7 @@ CHECKPOINT ?= runs/small/best.pt
 WEATHERS ?= test
 SEEDS ?= 3
 
-.PHONY: demo test bench towns clean lint record evaluate
+.PHONY: demo test bench towns clean lint record evaluate train
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -39,6 +39,12 @@ bench: $(STAMP)
 	$(PY) benchmarks/bench_world.py
 	$(BID) bench render
 	$(BID) bench record
+	$(PY) benchmarks/bench_reader.py
+	$(PY) benchmarks/bench_model.py
+
+# The BID model, `small` preset, on the recordings of `make record`.
+train: $(STAMP)
+	$(BID) train --preset small --data data/town01 --name small
 
 # The closed-loop benchmark; AGENT=expert needs no checkpoint.
 evaluate: $(STAMP)

@@ -1,9 +1,74 @@
-"""`bid` subcommands of the model package (registered through the "bid.commands" entry point)."""
+"""`bid` subcommands of the model package (registered through the "bid.commands" entry point).
+
+torch is imported only when a model command runs, so `bid towns` stays fast.
+"""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from bid_model.config import PRESETS, VARIANTS
+
+
+def add_train_arguments(p: argparse.ArgumentParser) -> None:
+    """Flags of `bid train` and `python -m bid_model.train`."""
+    p.add_argument("--preset", choices=PRESETS, default=None,
+                   help="network and schedule: paper, small (default) or tiny")
+    p.add_argument("--variant", choices=tuple(VARIANTS), default=None,
+                   help="the paper's ablation: baseline, dorsal, navigation, both, full (default)")
+    p.add_argument("--data", default="data/town01", help="folder of recordings (default data/town01)")
+    p.add_argument("--synthetic", action="store_true", help="train on generated frames instead")
+    p.add_argument("--samples", type=int, default=None, help="size of the --synthetic dataset")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="epochs (the lr milestones scale with them); preset's by default")
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--speed-input", action="store_true",
+                   help="feed the measured speed to the network (off in the paper)")
+    p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
+    p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--workers", type=int, default=None, help="data loader processes")
+    p.add_argument("--threads", type=int, default=None,
+                   help="CPU threads for torch (default: all cores; 1 on a busy machine)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _train(args: argparse.Namespace) -> int:
+    from bid_model.train import run_from_args
+
+    return run_from_args(args)
+
+
+def _gradcam(args: argparse.Namespace) -> int:
+    from bid_model.gradcam import run_gradcam
+
+    targets = ("steer", "accel") if args.target == "both" else (args.target,)
+    paths = run_gradcam(Path(args.checkpoint), Path(args.out), data=Path(args.data),
+                        synthetic=args.synthetic, area=args.area, targets=targets,
+                        samples=args.samples, preset=args.preset)
+    print(f"{args.out}: {len(paths)} Grad-CAM overlays ({args.area}, {args.target})")
+    return 0
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    """Add the model's subcommands (train, gradcam, ...) to the `bid` parser."""
+    """Add the model's subcommands (train, gradcam) to the `bid` parser."""
+    t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
+                                     "checkpoints and plots)")
+    add_train_arguments(t)
+    t.set_defaults(func=_train)
+
+    g = sub.add_parser("gradcam", help="sign-aware Grad-CAM overlays of a trained model")
+    g.add_argument("--checkpoint", required=True, help="last.pt or best.pt of a run")
+    g.add_argument("--out", required=True, help="folder for the PNG overlays")
+    g.add_argument("--data", default="data/town01", help="folder of recordings")
+    g.add_argument("--synthetic", action="store_true", help="explain generated frames instead")
+    g.add_argument("--area", default="IT", help="V1, V2, V4, IT (default) or MT")
+    g.add_argument("--target", choices=("steer", "accel", "both"), default="steer")
+    g.add_argument("--samples", type=int, default=6, help="validation frames to explain")
+    g.add_argument("--preset", choices=PRESETS, default=None,
+                   help="refuse a checkpoint of another preset")
+    g.set_defaults(func=_gradcam)

@@ -1,0 +1,74 @@
+"""The BID network as a driving agent for the closed loop (`bid evaluate --agent bid`).
+
+It sees what a learned policy may see: the camera frame t, frame t−1, the route command
+(corrected by the episode after a route departure) and, if the model was trained with it,
+the measured speed; never the privileged snapshot. Registered as the "bid" entry of the
+"bid.agents" entry point group.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bid_model.checkpoint import load_model
+from bid_model.data import command_one_hot, prepare_frame
+from bid_sim.agents import EpisodeInfo, Observation
+from bid_sim.ego import Control
+from bid_sim.errors import BidError
+
+
+class BIDAgent:
+    """Drives with a trained checkpoint; one frame's forward pass per step on the CPU.
+
+    lesions: {area: "zero" | "mean"} switched off at inference (see BID.set_lesions).
+    gradcam_area: with `overlay`, the area whose sign-aware Grad-CAM of steer is drawn.
+    """
+
+    uses_camera = True
+
+    def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
+                 threads: int = 1, gradcam_area: str = "IT"):
+        torch.set_num_threads(threads)
+        self.model, self.config = load_model(checkpoint)
+        if lesions:
+            self.model.set_lesions(dict(lesions))
+        self.hw = tuple(self.config.model.frame_hw)
+        self.gradcam_area = gradcam_area
+        self._prev: torch.Tensor | None = None
+        self._inputs: tuple | None = None
+
+    def reset(self, info: EpisodeInfo) -> None:
+        self._prev = None
+        self._inputs = None
+
+    @torch.inference_mode()
+    def act(self, obs: Observation) -> Control:
+        if obs.frame is None:
+            raise BidError("the BID agent needs camera frames: run it with a renderer")
+        frame = prepare_frame(obs.frame, self.hw)[None]
+        prev = self._prev if self._prev is not None else frame  # frame t at an episode's start
+        cmd = command_one_hot(int(obs.command))
+        speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
+        out = self.model(frame, prev, cmd, speed)[0]
+        self._prev = frame
+        self._inputs = (frame, prev, cmd, speed)
+        return Control(steer=float(out[0]), accel=float(out[1]))
+
+    def overlay(self, frame: np.ndarray) -> np.ndarray | None:
+        """The last step's Grad-CAM of steer over the three cameras (for evaluation videos)."""
+        from bid_model.gradcam import gradcam, overlay
+
+        if self._inputs is None:
+            return None
+        frame_t, prev, cmd, speed = self._inputs
+        with torch.inference_mode(False), torch.enable_grad():
+            cam = gradcam(self.model, frame_t.clone(), prev.clone(), cmd.clone(),
+                          None if speed is None else speed.clone(), area=self.gradcam_area)[0].numpy()
+        import cv2
+
+        h, w = frame.shape[:2]
+        return overlay(frame, cv2.resize(cam, (w, h), interpolation=cv2.INTER_LINEAR))

@@ -1,0 +1,83 @@
+"""Checkpoints of the BID model: atomic writes, and loading with the config they were saved with.
+
+A checkpoint is a dict: `config` (RunConfig.to_dict), `model` (state dict), `optimizer`,
+`scheduler`, `epoch` (epochs finished), `history` (metrics rows), `best_val_loss`,
+`git_hash`, `version`.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from bid_model.config import RunConfig
+from bid_model.model import BID
+from bid_sim.errors import BidError
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    """Write `payload` to `path` atomically: a crash leaves the old file or the new one."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        torch.save(payload, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint dict at `path`; a missing or unreadable file is a BidError."""
+    path = Path(path)
+    if not path.is_file():
+        raise BidError(f"no checkpoint at {path}; train one with `bid train` or pass its path")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for a damaged file
+        raise BidError(f"cannot read checkpoint {path} ({type(e).__name__}); is it a `bid train` "
+                       "checkpoint (last.pt / best.pt)?") from e
+    if not isinstance(ckpt, dict) or "config" not in ckpt or "model" not in ckpt:
+        raise BidError(f"{path} is not a `bid train` checkpoint (no config or model inside)")
+    return ckpt
+
+
+def load_model(path: str | Path, preset: str | None = None,
+               device: str | torch.device = "cpu") -> tuple[BID, RunConfig]:
+    """The model of checkpoint `path` in eval mode, and its config.
+
+    With `preset`, a checkpoint trained with another preset is a BidError.
+    """
+    ckpt = load_checkpoint(path)
+    config = RunConfig.from_dict(ckpt["config"])
+    check_preset(config, preset, path)
+    model = BID(config.model)
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as e:
+        raise BidError(f"checkpoint {path} does not fit the {config.preset!r} "
+                       f"{config.model.variant!r} model it names; was it written by another "
+                       "version of bid_model?") from e
+    return model.to(device).eval(), config
+
+
+def check_preset(config: RunConfig, preset: str | None, path: str | Path) -> None:
+    """BidError if the checkpoint's preset is not the one asked for."""
+    if preset is not None and preset != config.preset:
+        raise BidError(f"checkpoint {path} is from the {config.preset!r} preset, not "
+                       f"{preset!r}; pass --preset {config.preset} or another checkpoint")
+
+
+def git_hash() -> str:
+    """The commit of this source tree ("+dirty" with uncommitted changes), or "unknown"."""
+    repo = Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True,
+                              text=True, timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=repo, capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head + ("+dirty" if dirty else "")

@@ -1,0 +1,180 @@
+"""Configuration of the BID model ("Brain-inspired driving", BID) and of its training.
+
+Frozen dataclasses whose defaults are the paper's values. `paper()`, `small()` and `tiny()`
+build the presets; `with_variant` switches on the paper's ablations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from bid_sim.errors import BidError
+
+# The paper's ablations: which streams feed the decision network.
+# baseline = ventral stream only; dorsal adds MT/MST (motion), navigation adds OFC (the
+# command), both adds the two; full BID also relates foreground and background in DPC.
+VARIANTS: dict[str, dict[str, bool]] = {
+    "baseline": {"dorsal": False, "navigation": False, "relations": False},
+    "dorsal": {"dorsal": True, "navigation": False, "relations": False},
+    "navigation": {"dorsal": False, "navigation": True, "relations": False},
+    "both": {"dorsal": True, "navigation": True, "relations": False},
+    "full": {"dorsal": True, "navigation": True, "relations": True},
+}
+
+PRESETS = ("paper", "small", "tiny")
+
+# The paper halves the learning rate at these epochs of its 100.
+PAPER_EPOCHS = 100
+PAPER_MILESTONES = (25, 45, 70)
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Shape of the network. Widths are channels; `frame_hw` is (rows, columns) of the input."""
+
+    preset: str = "paper"
+    variant: str = "full"
+    frame_hw: tuple[int, int] = (300, 900)
+    widths: tuple[int, int, int, int] = (64, 128, 256, 512)  # V1, V2, V4, IT
+    times: tuple[int, int, int] = (2, 4, 2)  # recurrent steps of V2, V4, IT
+    expansion: int = 4  # bottleneck expansion inside V2, V4, IT
+    depthwise: bool = False  # expanded 3×3 per channel (MobileNet-style) instead of full (CORnet-S)
+    mt_kernel: int = 5  # dynamic filter size of MT, on the V1 grid
+    mt_groups: int = 4
+    dpc_kernel: int = 3  # dynamic filter size of DPC, on the IT grid
+    dpc_groups: int = 4
+    mpc_layers: int = 4
+    mpc_heads: int = 4
+    mpc_ff_mult: int = 4
+    cpc_hidden: tuple[int, int] = (256, 256)
+    dropout: float = 0.1
+    n_commands: int = 6
+    dorsal: bool = True
+    navigation: bool = True
+    relations: bool = True
+    speed_input: bool = False  # measured speed as an extra token (off in the paper)
+    lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
+
+    def __post_init__(self) -> None:
+        if self.widths[3] % self.mpc_heads:
+            raise ValueError(f"IT width {self.widths[3]} must be divisible by {self.mpc_heads} heads")
+        if len(self.times) != 3 or min(self.times) < 1:
+            raise ValueError(f"times must be 3 positive step counts, got {self.times}")
+        if self.widths[0] % self.mt_groups or self.widths[3] % self.dpc_groups:
+            raise ValueError("filter groups must divide the filtered widths")
+        if self.relations and not self.dorsal:
+            raise ValueError("relations (DPC) need the dorsal stream (MT)")
+
+    @property
+    def width(self) -> int:
+        """Width of the decision network (= the ventral output width)."""
+        return self.widths[3]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation: L1 loss, AdamW, step schedule; the paper's values as defaults."""
+
+    epochs: int = PAPER_EPOCHS
+    milestones: tuple[int, ...] = PAPER_MILESTONES
+    lr_gamma: float = 0.5
+    batch_size: int = 100
+    lr: float = 2e-4
+    weight_decay: float = 0.02
+    lambda_steer: float = 0.5
+    lambda_accel: float = 0.5
+    val_fraction: float = 0.1
+    seed: int = 0
+    workers: int = 2
+    synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`
+
+    def with_epochs(self, epochs: int) -> TrainConfig:
+        """The same schedule stretched to `epochs` (milestones scale with the paper's 100)."""
+        if epochs < 1:
+            raise BidError(f"--epochs must be at least 1, got {epochs}")
+        return dataclasses.replace(self, epochs=epochs, milestones=scaled_milestones(epochs))
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A preset: the model and how to train it."""
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    @property
+    def preset(self) -> str:
+        return self.model.preset
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model": dataclasses.asdict(self.model), "train": dataclasses.asdict(self.train)}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> RunConfig:
+        return RunConfig(model=_from_dict(ModelConfig, d["model"]),
+                         train=_from_dict(TrainConfig, d["train"]))
+
+
+def model_config_from_dict(d: dict[str, Any]) -> ModelConfig:
+    return _from_dict(ModelConfig, d)
+
+
+def _from_dict(cls: type, d: dict[str, Any]) -> Any:
+    known = {f.name for f in dataclasses.fields(cls)}
+    # JSON turns tuples into lists; frozen configs keep tuples so they stay hashable.
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in known})
+
+
+def scaled_milestones(epochs: int) -> tuple[int, ...]:
+    """The paper's lr milestones (25, 45, 70 of 100) scaled to `epochs`, at least epoch 1."""
+    return tuple(max(1, round(m * epochs / PAPER_EPOCHS)) for m in PAPER_MILESTONES)
+
+
+def with_variant(model: ModelConfig, variant: str) -> ModelConfig:
+    """`model` switched to one of the paper's ablations (see VARIANTS)."""
+    if variant not in VARIANTS:
+        raise BidError(f"unknown variant {variant!r}; use one of {', '.join(VARIANTS)}")
+    return dataclasses.replace(model, variant=variant, **VARIANTS[variant])
+
+
+def paper() -> RunConfig:
+    """The paper's network: 900×300 input, widths 64/128/256/512, 100 epochs of batch 100."""
+    return RunConfig(ModelConfig(), TrainConfig())
+
+
+def small() -> RunConfig:
+    """Trains on a 2-core CPU in tens of minutes on ~20k frames: 64×192 input, narrow widths.
+
+    Each camera becomes 64×64 pixels; widths 16/32/64/128, so the ventral output is a 2×6 grid
+    of 128-wide tokens. The expanded 3×3 convolutions of V2, V4 and IT are depthwise and MPC's
+    feed-forward is 2× wide (benchmarks/bench_model.py): about 100 samples/s of training on two
+    cores, about 12 ms per frame of inference on one. 10 epochs; data loads in the training
+    process (workers=0), which leaves both cores to torch.
+    """
+    model = ModelConfig(
+        preset="small", frame_hw=(64, 192), widths=(16, 32, 64, 128), depthwise=True,
+        mt_kernel=3, mpc_ff_mult=2, cpc_hidden=(128, 64), dropout=0.0,
+    )
+    return RunConfig(model, TrainConfig(workers=0).with_epochs(10))
+
+
+def tiny() -> RunConfig:
+    """For unit tests: 32×96 input, widths 8/8/16/16, a step takes well under a second."""
+    model = ModelConfig(
+        preset="tiny", frame_hw=(32, 96), widths=(8, 8, 16, 16), mt_kernel=3,
+        mt_groups=2, dpc_groups=2, mpc_layers=4, mpc_heads=4, mpc_ff_mult=2,
+        cpc_hidden=(16, 16), dropout=0.0,
+    )
+    train = dataclasses.replace(TrainConfig(batch_size=16, lr=2e-3, workers=0,
+                                            synthetic_samples=160), val_fraction=0.2)
+    return RunConfig(model, train.with_epochs(10))
+
+
+def preset(name: str) -> RunConfig:
+    """The preset called `name` (paper, small or tiny)."""
+    builders = {"paper": paper, "small": small, "tiny": tiny}
+    if name not in builders:
+        raise BidError(f"unknown preset {name!r}; use one of {', '.join(PRESETS)}")
+    return builders[name]()

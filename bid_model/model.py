@@ -1,0 +1,204 @@
+"""The BID network ("Brain-inspired driving"): visual cortex → prefrontal cortex → control.
+
+    frame t ──▶ V1 ─▶ V2 ─▶ V4 ─▶ IT ──E_V──▶ VPC ─┐
+    frame t−1 ─▶ V1 ─┴──────▶ MT/MST ──E_S──▶ DPC ─┼─▶ MPC ─▶ CPC ─▶ (steer, accel)
+    command ─────────────────────────────────▶ OFC ─┘
+
+`BID.forward_features` returns every area's output by name; `forward_head` is CPC. Any area
+can be lesioned at inference (`set_lesions`, `lesioned`): its output is replaced by zeros or
+by its mean activation, a running mean kept during training.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+
+import torch
+from torch import nn
+
+from bid_model.areas import CPC, DPC, IT, MPC, MT, OFC, V1, V2, V4, VPC, GridTokens, half
+from bid_model.config import ModelConfig
+from bid_sim.errors import BidError
+
+AREAS = ("V1", "V2", "V4", "IT", "MT", "VPC", "DPC", "OFC", "MPC", "CPC")
+LESION_MODES = ("zero", "mean")
+SPEED_SCALE_MPS = 10.0  # speed is fed as speed_mps / 10, about unit scale
+
+# Mean and spread of pixel values (0..1) the network sees after normalisation.
+_PIXEL_MEAN, _PIXEL_STD = 0.45, 0.25
+
+
+class BID(nn.Module):
+    """The whole network; which streams exist follows `config` (the paper's variants)."""
+
+    def __init__(self, config: ModelConfig):
+        """Build the areas of `config`'s variant; widths, input size and steps come from it."""
+        super().__init__()
+        self.config = c = config
+        w, d = c.widths, c.width
+        areas: dict[str, nn.Module] = {
+            "V1": V1(w[0]),
+            "V2": V2(w[0], w[1], c.times[0], c.expansion, c.depthwise),
+            "V4": V4(w[1], w[2], c.times[1], c.expansion, c.depthwise),
+            "IT": IT(w[2], w[3], c.times[2], c.expansion, c.depthwise),
+        }
+        n_tokens = self.grid_hw()["IT"][0] * self.grid_hw()["IT"][1]
+        if c.dorsal:
+            areas["MT"] = MT(w, c.mt_kernel, c.mt_groups)
+        areas["VPC"] = VPC(n_tokens, d)
+        if c.relations:
+            areas["DPC"] = DPC(d, n_tokens, c.dpc_kernel, c.dpc_groups)
+        if c.navigation:
+            areas["OFC"] = OFC(c.n_commands, d)
+        areas["MPC"] = MPC(d, c.mpc_layers, c.mpc_heads, c.mpc_ff_mult, c.dropout)
+        areas["CPC"] = CPC(d, c.cpc_hidden)
+        self.areas = nn.ModuleDict(areas)
+        # The direct MT → MPC pathway of the +dorsal variants without DPC.
+        self.dorsal_tokens = GridTokens(n_tokens, d) if c.dorsal and not c.relations else None
+        # Measured speed as an extra token: an option, not part of the paper's model.
+        self.speed_token = nn.Linear(1, d) if c.speed_input else None
+
+        for name, shape in self.output_shapes().items():
+            self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
+        self.register_buffer("mean_batches", torch.zeros((), dtype=torch.long))
+        self.lesions: dict[str, str] = {}
+
+    # --- shapes ---------------------------------------------------------------------------
+
+    def grid_hw(self) -> dict[str, tuple[int, int]]:
+        """(rows, cols) of the feature grid of each perception area."""
+        h, w = self.config.frame_hw
+        grids = {"V1": (half(half(h)), half(half(w)))}
+        for name, prev in (("V2", "V1"), ("V4", "V2"), ("IT", "V4")):
+            grids[name] = (half(grids[prev][0]), half(grids[prev][1]))
+        grids["MT"] = grids["IT"]
+        return grids
+
+    def output_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Per-sample output shape of each area present in this variant."""
+        g, w, d = self.grid_hw(), self.config.widths, self.config.width
+        n = g["IT"][0] * g["IT"][1]
+        n_all = n * (1 + self.config.dorsal) + self.config.navigation + self.config.speed_input
+        shapes = {"V1": (w[0], *g["V1"]), "V2": (w[1], *g["V2"]), "V4": (w[2], *g["V4"]),
+                  "IT": (d, *g["IT"]), "MT": (d, *g["MT"]), "VPC": (n, d), "DPC": (n, d),
+                  "OFC": (1, d), "MPC": (n_all, d), "CPC": (2,)}
+        return {name: shapes[name] for name in AREAS if name in self.areas}
+
+    # --- lesions --------------------------------------------------------------------------
+
+    def set_lesions(self, lesions: Mapping[str, str]) -> None:
+        """Switch areas off from now on: {"IT": "zero", "MT": "mean", ...}; {} restores all."""
+        for name, mode in lesions.items():
+            if name not in self.areas:
+                raise BidError(f"cannot lesion {name!r}: this {self.config.variant} model has "
+                               f"areas {', '.join(self.areas)}")
+            if mode not in LESION_MODES:
+                raise BidError(f"lesion mode {mode!r} for {name}; use 'zero' or 'mean'")
+        self.lesions = dict(lesions)
+
+    def _area(self, name: str, *inputs: torch.Tensor | dict) -> torch.Tensor:
+        """Run area `name`; apply its lesion, or (training) update its mean activation."""
+        out = self.areas[name](*inputs)
+        mode = self.lesions.get(name)
+        mean: torch.Tensor = getattr(self, f"mean_{name}")
+        if mode == "zero":
+            return torch.zeros_like(out)
+        if mode == "mean":
+            return mean.to(out.dtype).expand_as(out).clone()
+        if self.training:
+            with torch.no_grad():
+                # Cumulative average at first, then an exponential one that follows training.
+                m = max(self.config.lesion_momentum, 1.0 / (int(self.mean_batches) + 1))
+                mean.mul_(1 - m).add_(out.detach().float().mean(0), alpha=m)
+        return out
+
+    # --- forward --------------------------------------------------------------------------
+
+    def check_inputs(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
+                     command_onehot: torch.Tensor, speed_mps: torch.Tensor | None) -> None:
+        """Raise BidError naming the problem if the inputs do not fit this model."""
+        c = self.config
+        hw = tuple(c.frame_hw)
+        for name, x in (("frame_t", frame_t), ("frame_prev", frame_prev)):
+            if x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != hw:
+                raise BidError(f"{name} has shape {tuple(x.shape)} but the {c.preset!r} preset "
+                               f"expects (batch, 3, {hw[0]}, {hw[1]}); resize frames with "
+                               "bid_model.data.prepare_frame")
+        if frame_prev.shape[0] != frame_t.shape[0]:
+            raise BidError(f"frame_prev has batch {frame_prev.shape[0]}, frame_t {frame_t.shape[0]}")
+        if tuple(command_onehot.shape) != (frame_t.shape[0], c.n_commands):
+            raise BidError(f"command must be a one-hot of shape (batch, {c.n_commands}), got "
+                           f"{tuple(command_onehot.shape)}; build it with "
+                           "bid_model.data.command_one_hot")
+        if c.speed_input and (speed_mps is None or speed_mps.numel() != frame_t.shape[0]):
+            raise BidError("this model takes the measured speed as input: pass speed_mps (batch,)")
+
+    @staticmethod
+    def _normalise(frame: torch.Tensor) -> torch.Tensor:
+        """uint8 RGB (0..255), or float already in 0..1, to the network's input scale."""
+        x = frame.float() / 255.0 if frame.dtype == torch.uint8 else frame.float()
+        return (x - _PIXEL_MEAN) / _PIXEL_STD
+
+    def forward_features(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
+                         command_onehot: torch.Tensor,
+                         speed_mps: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Every area's output by name (V1's for frame t), up to MPC's tokens."""
+        self.check_inputs(frame_t, frame_prev, command_onehot, speed_mps)
+        c, b = self.config, frame_t.shape[0]
+        feats: dict[str, torch.Tensor] = {}
+        if c.dorsal:  # one V1 pass over both frames
+            v1_both = self._area("V1", self._normalise(torch.cat([frame_t, frame_prev])))
+            feats["V1"], v1_prev = v1_both.split(b)
+        else:
+            feats["V1"] = self._area("V1", self._normalise(frame_t))
+        feats["V2"] = self._area("V2", feats["V1"])
+        feats["V4"] = self._area("V4", feats["V2"])
+        feats["IT"] = self._area("IT", feats["V4"])
+        streams = {"ventral": self._area("VPC", feats["IT"])}
+        feats["VPC"] = streams["ventral"]
+        if c.dorsal:
+            feats["MT"] = self._area("MT", feats["V1"], v1_prev)
+            if c.relations:
+                feats["DPC"] = streams["dorsal"] = self._area("DPC", feats["MT"], feats["IT"])
+            else:
+                streams["dorsal"] = self.dorsal_tokens(feats["MT"])
+        if c.navigation:
+            feats["OFC"] = streams["navigation"] = self._area("OFC", command_onehot.float())
+        if self.speed_token is not None:
+            speed = speed_mps.reshape(b, 1, 1).float() / SPEED_SCALE_MPS
+            streams["speed"] = self.speed_token(speed)
+        feats["MPC"] = self._area("MPC", streams)
+        if self.training:
+            self.mean_batches += 1
+        return feats
+
+    def forward_head(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
+        """CPC: MPC's tokens → (batch, 2) = (steer, accel), each in [−1, 1]."""
+        return self._area("CPC", features["MPC"])
+
+    def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
+                command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+        """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6)."""
+        return self.forward_head(self.forward_features(frame_t, frame_prev, command_onehot,
+                                                       speed_mps))
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Number of parameters of each area (and of the optional extra pathways)."""
+        counts = {name: sum(p.numel() for p in area.parameters())
+                  for name, area in self.areas.items()}
+        for name, module in (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token)):
+            if module is not None:
+                counts[name] = sum(p.numel() for p in module.parameters())
+        return counts
+
+
+@contextlib.contextmanager
+def lesioned(model: BID, lesions: Mapping[str, str]) -> Iterator[BID]:
+    """`with lesioned(model, {"IT": "mean"}):` the model with those areas switched off."""
+    before = dict(model.lesions)
+    model.set_lesions({**before, **lesions})
+    try:
+        yield model
+    finally:
+        model.lesions = before

@@ -1,0 +1,215 @@
+"""Training samples from a folder of recordings (bid_sim.recording), in the dataset contract
+of bid_model.data.
+
+`open_recordings` indexes every finished recording (`*.mcap`, recursively; unfinished
+`.mcap.partial` files are skipped with a warning, a corrupt file is a BidError naming it),
+splits whole episodes into training and validation, and by default decodes and resizes
+every frame once into a memory-mapped cache next to the data (decoding in worker
+processes, one recording each), so that epochs read frames without decoding JPEG. The
+cache is keyed by the recordings' names, sizes and times and by the frame size, and is
+rebuilt when any of them changes. Without the cache, frames stay as JPEG in memory and are
+decoded in __getitem__ (in DataLoader workers when there are any).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import multiprocessing as mp
+import os
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from bid_model.data import resize_frame, split_episodes
+from bid_sim.errors import BidError
+from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
+
+log = logging.getLogger(__name__)
+CACHE_DIR = ".bid_cache"
+
+
+@dataclass
+class _Index:
+    """Every sample of the folder, in (file, step) order; arrays are parallel."""
+
+    files: list[Path]
+    facts: list[dict[str, str]]
+    episode: np.ndarray  # (N,) file index
+    step: np.ndarray
+    prev: np.ndarray  # (N,) sample index of frame t-1 (itself at an episode's start or after a gap)
+    command: np.ndarray
+    speed: np.ndarray
+    steer: np.ndarray
+    accel: np.ndarray
+    jpeg: list[bytes] | None  # kept only without the cache
+
+
+def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
+    """(finished recordings, unfinished .partial files) under `folder`, sorted."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise BidError(f"no recordings: {folder} does not exist; record some with `make record TOWN=01`")
+    files = sorted(p for p in folder.rglob("*.mcap") if CACHE_DIR not in p.parts)
+    partial = sorted(folder.rglob(f"*.mcap{PARTIAL}"))
+    return files, partial
+
+
+def _index(files: list[Path], keep_jpeg: bool) -> _Index:
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("episode", "step", "prev", "command", "speed", "steer", "accel")}
+    facts, jpeg = [], [] if keep_jpeg else None
+    n = 0
+    for e, f in enumerate(files):
+        ep = read_episode(f, frames=keep_jpeg)
+        facts.append(ep.facts)
+        m = len(ep)
+        if m == 0:
+            continue
+        idx = np.arange(n, n + m)
+        cont = np.r_[False, np.diff(ep.steps) == 1]  # frame t-1 exists right before
+        cols["prev"].append(np.where(cont, idx - 1, idx))
+        cols["episode"].append(np.full(m, e))
+        cols["step"].append(ep.steps)
+        cols["command"].append(ep.command)
+        cols["speed"].append(ep.speed_mps)
+        cols["steer"].append(ep.steer)
+        cols["accel"].append(ep.accel)
+        if jpeg is not None:
+            jpeg.extend(ep.jpeg)
+        n += m
+    arr = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()}
+    return _Index(files, facts, arr["episode"].astype(np.int64), arr["step"].astype(np.int64),
+                  arr["prev"].astype(np.int64), arr["command"].astype(np.int64), arr["speed"].astype(np.float32),
+                  arr["steer"].astype(np.float32), arr["accel"].astype(np.float32), jpeg)
+
+
+def _cache_key(files: list[Path], frame_hw: tuple[int, int]) -> str:
+    h = hashlib.sha1(f"{frame_hw}".encode())
+    for f in files:
+        st = f.stat()
+        h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()[:16]
+
+
+def _decode_file(args: tuple[str, str, int, int, tuple[int, int]]) -> int:
+    """Worker: decodes one recording's frames into its rows of the cache file."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    path, cache, start, total, (h, w) = args
+    ep = read_episode(path)
+    mm = np.memmap(cache, dtype=np.uint8, mode="r+", shape=(total, 3, h, w))
+    for i, data in enumerate(ep.jpeg):
+        mm[start + i] = resize_frame(decode_jpeg(data), (h, w)).transpose(2, 0, 1)
+    mm.flush()
+    del mm
+    return len(ep.jpeg)
+
+
+def build_cache(index: _Index, folder: Path, frame_hw: tuple[int, int], workers: int | None = None) -> Path:
+    """The memory-mapped (N, 3, H, W) uint8 frame cache of an index (built if missing)."""
+    h, w = frame_hw
+    total = len(index.step)
+    cache_dir = folder / CACHE_DIR
+    path = cache_dir / f"frames-{h}x{w}-{_cache_key(index.files, frame_hw)}.u8"
+    if path.exists() and path.stat().st_size == total * 3 * h * w:
+        return path
+    try:
+        cache_dir.mkdir(exist_ok=True)
+        for old in cache_dir.glob(f"frames-{h}x{w}-*.u8"):
+            old.unlink()
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+        np.memmap(tmp, dtype=np.uint8, mode="w+", shape=(max(total, 1), 3, h, w)).flush()
+    except OSError as e:
+        raise BidError(f"cannot write the frame cache in {cache_dir} ({e.strerror}); free disk space "
+                       "or train with --no-cache") from e
+    counts = np.bincount(index.episode, minlength=len(index.files))
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    jobs = [(str(f), str(tmp), int(s), total, (h, w)) for f, s, c in zip(index.files, starts, counts, strict=True) if c]
+    workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))
+    log.info("caching %d frames of %d recordings at %dx%d with %d workers", total, len(jobs), h, w, workers)
+    if workers > 1 and len(jobs) > 1:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            done = list(pool.imap_unordered(_decode_file, jobs))
+    else:
+        done = [_decode_file(j) for j in jobs]
+    if sum(done) != total:
+        tmp.unlink(missing_ok=True)
+        raise BidError(f"recordings in {folder} changed while caching; run again")
+    os.replace(tmp, path)
+    return path
+
+
+class RecordingDataset(Dataset):
+    """Samples (bid_model.data contract) of chosen rows of an index."""
+
+    def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None):
+        self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
+        self.cache = cache
+        self._mm: np.ndarray | None = None  # opened lazily: once per DataLoader worker
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def _frame(self, j: int) -> torch.Tensor:
+        if self.cache is not None:
+            if self._mm is None:
+                h, w = self.frame_hw
+                self._mm = np.memmap(self.cache, dtype=np.uint8, mode="r", shape=(len(self.index.step), 3, h, w))
+            return torch.from_numpy(np.array(self._mm[j]))
+        assert self.index.jpeg is not None
+        img = resize_frame(decode_jpeg(self.index.jpeg[j]), self.frame_hw)
+        return torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1)))
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        ix = self.index
+        j = int(self.rows[i])
+        return {"frame": self._frame(j), "prev_frame": self._frame(int(ix.prev[j])),
+                "command": int(ix.command[j]), "speed_mps": float(ix.speed[j]), "steer": float(ix.steer[j]),
+                "accel": float(ix.accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_mm"] = None  # each worker process maps the file itself
+        return state
+
+
+def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
+                    cache: bool = True) -> tuple[RecordingDataset, RecordingDataset, dict]:
+    """(train, validation, description) of the recordings in `folder`, split by episode."""
+    folder = Path(folder)
+    files, partial = find_recordings(folder)
+    for p in partial:
+        log.warning("skipping unfinished recording %s (salvage it with `bid recover %s`)", p, p)
+    if not files:
+        raise BidError(f"no finished recordings (*.mcap) in {folder}; record some with `make record TOWN=01`")
+    index = _index(files, keep_jpeg=not cache)
+    if len(index.step) == 0:
+        raise BidError(f"the recordings in {folder} hold no camera frames")
+    bad = np.flatnonzero((index.command < 1) | (index.command > 6))
+    if len(bad):
+        raise BidError(f"{files[index.episode[bad[0]]]} has navigation command {index.command[bad[0]]} "
+                       "out of 1..6: not a bid-sim recording, or damaged")
+    cache_path = build_cache(index, folder, tuple(frame_hw)) if cache else None
+    train_eps, val_eps = split_episodes(range(len(files)), val_fraction, seed)
+    is_val = np.isin(index.episode, val_eps)
+    train = RecordingDataset(index, np.flatnonzero(~is_val), frame_hw, cache_path)
+    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
+    weathers = Counter(f.get("weather", "?") for f in index.facts)
+    densities = Counter(f.get("density", "?") for f in index.facts)
+    towns = Counter(f.get("town", "?") for f in index.facts)
+    description = {
+        "folder": str(folder), "recordings": len(files), "skipped_partial": [str(p) for p in partial],
+        "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
+        "train_episodes": len(train_eps), "val_episodes": [files[e].name for e in val_eps],
+        "towns": dict(towns), "weathers": dict(weathers), "densities": dict(densities),
+        "frame_hw": list(frame_hw), "cache": str(cache_path) if cache_path else None,
+        "steer_mean_abs": float(np.abs(index.steer).mean()), "accel_mean": float(index.accel.mean()),
+    }
+    return train, val, json.loads(json.dumps(description))

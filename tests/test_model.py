@@ -1,0 +1,224 @@
+"""The BID network on the tiny preset: shapes, recurrence, gradients, lesions, bad input."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from bid_model.areas import dynamic_filter
+from bid_model.config import (
+    VARIANTS,
+    ModelConfig,
+    RunConfig,
+    preset,
+    scaled_milestones,
+    tiny,
+    with_variant,
+)
+from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
+from bid_model.model import BID, lesioned
+from bid_model.train import l1_loss, make_optimizer
+from bid_sim.errors import BidError
+
+B = 4
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    # Tiny tensors gain nothing from threads, and OpenMP threads crawl on a busy machine.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def tiny_model(variant: str = "full", **changes) -> BID:
+    torch.manual_seed(0)
+    return BID(dataclasses.replace(with_variant(tiny().model, variant), **changes))
+
+
+def inputs(model: BID, batch: int = B, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    h, w = model.config.frame_hw
+    frame = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)
+    prev = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)
+    command = command_one_hot(torch.randint(1, 7, (batch,), generator=g))
+    speed = torch.rand(batch, generator=g) * 10
+    return frame, prev, command, speed
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_forward_shapes_per_variant(variant):
+    model = tiny_model(variant).eval()
+    x = inputs(model)
+    feats = model.forward_features(*x)
+    expected = {"V1", "V2", "V4", "IT", "VPC", "MPC"}
+    expected |= {"MT"} if VARIANTS[variant]["dorsal"] else set()
+    expected |= {"DPC"} if VARIANTS[variant]["relations"] else set()
+    expected |= {"OFC"} if VARIANTS[variant]["navigation"] else set()
+    assert set(feats) == expected
+    assert set(model.areas) == expected | {"CPC"}
+    shapes = model.output_shapes()
+    for name, out in feats.items():
+        assert tuple(out.shape) == (B, *shapes[name]), name
+    grids = model.grid_hw()
+    assert feats["IT"].shape[1] == model.config.width
+    assert feats["VPC"].shape[1] == grids["IT"][0] * grids["IT"][1]
+    out = model(*x)
+    assert out.shape == (B, 2) and bool((out.abs() <= 1).all())
+    assert torch.equal(out, model.forward_head(feats))
+
+
+def test_speed_input_is_an_extra_token():
+    model = tiny_model(speed_input=True).eval()
+    frame, prev, command, speed = inputs(model)
+    out = model(frame, prev, command, speed)
+    assert out.shape == (B, 2)
+    assert not torch.equal(out, model(frame, prev, command, speed + 5))
+    with pytest.raises(BidError, match="speed"):
+        model(frame, prev, command)
+
+
+def test_paper_preset_matches_the_paper():
+    m = preset("paper").model
+    assert m.frame_hw == (300, 900) and m.widths == (64, 128, 256, 512)
+    assert m.times == (2, 4, 2) and (m.mpc_layers, m.mpc_heads) == (4, 4)
+    assert not m.speed_input and m.variant == "full"
+    t = preset("paper").train
+    assert (t.epochs, t.milestones, t.batch_size, t.lr, t.weight_decay) == (100, (25, 45, 70), 100, 2e-4, 0.02)
+    assert (t.lambda_steer, t.lambda_accel) == (0.5, 0.5)
+    assert scaled_milestones(20) == (5, 9, 14)
+
+
+@pytest.mark.parametrize("depthwise", [False, True])
+def test_recurrence_counts(depthwise):
+    model = tiny_model(depthwise=depthwise).eval()
+    steps = {"V2": 0, "V4": 0, "IT": 0}
+    calls = dict.fromkeys(steps, 0)
+
+    def count(table, name):
+        def hook(module, args, output):
+            table[name] += 1
+        return hook
+
+    for name in steps:
+        model.areas[name].bottleneck.register_forward_hook(count(steps, name))
+        model.areas[name].register_forward_hook(count(calls, name))
+    model(*inputs(model))
+    assert steps == {"V2": 2, "V4": 4, "IT": 2}
+    assert calls == {"V2": 1, "V4": 1, "IT": 1}
+
+
+def test_recurrent_area_shares_weights_not_norms():
+    area = tiny_model().areas["V4"]
+    assert len(area.bottleneck.norms) == 4
+    assert len({id(n[0]) for n in area.bottleneck.norms}) == 4
+    assert sum(isinstance(m, torch.nn.Conv2d) for m in area.modules()) == 5  # input, skip, 3 shared
+
+
+def test_dynamic_filter_matches_a_plain_reference():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 4, 3, 5, dtype=torch.float64, generator=g, requires_grad=True)
+    f = torch.randn(1, 2, 9, 3, 5, dtype=torch.float64, generator=g, requires_grad=True)
+    cols = torch.nn.functional.unfold(x, 3, padding=1).reshape(1, 2, 2, 9, 3, 5)
+    reference = (cols * f[:, :, None]).sum(3).reshape(1, 4, 3, 5)
+    assert torch.allclose(dynamic_filter(x, f), reference)
+    assert torch.autograd.gradcheck(dynamic_filter, (x, f))
+
+
+def test_gradients_reach_every_area():
+    model = tiny_model(speed_input=True).train()
+    frame, prev, command, speed = inputs(model)
+    target = torch.rand(B, 2) * 2 - 1
+    l1_loss(model(frame, prev, command, speed), target, tiny().train).backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None, name
+    for name, area in model.areas.items():
+        assert any(float(p.grad.abs().sum()) > 0 for p in area.parameters()), name
+
+
+def test_lesions_change_outputs_and_are_restored():
+    model = tiny_model()
+    x = inputs(model)
+    opt = make_optimizer(model, tiny().train)
+    model.train()
+    for _ in range(3):  # a few steps so that mean activations exist
+        loss = model(*x).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    intact = model(*x)
+    assert int(model.mean_batches) == 3
+    for name in model.areas:
+        for mode in ("zero", "mean"):
+            with lesioned(model, {name: mode}):
+                out = model(*x)
+            assert not torch.allclose(out, intact), (name, mode)
+    assert model.lesions == {}
+    assert torch.equal(model(*x), intact)
+    with lesioned(model, {"IT": "zero"}):
+        assert torch.count_nonzero(model.forward_features(*x)["IT"]) == 0
+    with pytest.raises(BidError, match="areas"):
+        model.set_lesions({"FEF": "zero"})
+    with pytest.raises(BidError, match="mode"):
+        model.set_lesions({"IT": "half"})
+    with pytest.raises(BidError, match="baseline"):
+        tiny_model("baseline").set_lesions({"MT": "zero"})
+
+
+def test_weight_decay_only_on_weights():
+    model = tiny_model()
+    decay, keep = make_optimizer(model, tiny().train).param_groups
+    assert decay["weight_decay"] == 0.02 and keep["weight_decay"] == 0.0
+    names = {id(p): n for n, p in model.named_parameters()}
+    assert all(p.ndim >= 2 for p in decay["params"])
+    kept = {names[id(p)] for p in keep["params"]}
+    assert any(n.endswith("bias") for n in kept) and any("norm" in n for n in kept)
+    assert "areas.VPC.pos_embed" in kept
+    assert "areas.V1.conv1.0.weight" in {names[id(p)] for p in decay["params"]}
+
+
+def test_bad_inputs_are_named():
+    model = tiny_model().eval()
+    frame, prev, command, _ = inputs(model)
+    with pytest.raises(BidError, match=r"frame_t .*tiny.*prepare_frame"):
+        model(torch.zeros(B, 3, 300, 900, dtype=torch.uint8), prev, command)
+    with pytest.raises(BidError, match="frame_prev"):
+        model(frame, prev[:, :, :-1], command)
+    with pytest.raises(BidError, match="one-hot"):
+        model(frame, prev, command[:, :4])
+    with pytest.raises(BidError, match="command 7 out of range"):
+        command_one_hot([4, 7])
+    with pytest.raises(BidError, match="command 0 out of range"):
+        command_one_hot(0)
+    with pytest.raises(BidError, match="unknown preset"):
+        preset("huge")
+    with pytest.raises(BidError, match="unknown variant"):
+        with_variant(tiny().model, "dorsalx")
+    with pytest.raises(ValueError, match="dorsal"):
+        ModelConfig(dorsal=False, relations=True)
+
+
+def test_synthetic_data_keeps_the_contract():
+    hw = tiny().model.frame_hw
+    data = SyntheticDriving(60, hw, seed=1)
+    for i in (0, 1, 59):
+        check_sample(data[i], hw)
+    assert torch.equal(data[5]["frame"], SyntheticDriving(60, hw, seed=1)[5]["frame"])
+    assert torch.equal(data[21]["prev_frame"], data[20]["frame"])
+    train, val, desc = synthetic_split(200, hw, 0.2, seed=0)
+    train_eps = {train[i]["episode"] for i in range(len(train))}
+    val_eps = {val[i]["episode"] for i in range(len(val))}
+    assert train_eps and val_eps and not train_eps & val_eps
+    assert desc["train_samples"] + desc["val_samples"] == 200
+    bad = dict(data[0], frame=data[0]["frame"][:, :-1])
+    with pytest.raises(BidError, match="prepare_frame"):
+        check_sample(bad, hw)
+
+
+def test_run_config_round_trips_through_json():
+    import json
+
+    run = RunConfig(with_variant(tiny().model, "both"), tiny().train.with_epochs(7))
+    assert RunConfig.from_dict(json.loads(json.dumps(run.to_dict()))) == run
