@@ -54,6 +54,20 @@ def _gradcam(args: argparse.Namespace) -> int:
     return 0
 
 
+def _lesion(args: argparse.Namespace) -> int:
+    from bid_model.lesion import lesion_study
+    from bid_sim.weather import parse_weathers
+
+    routes = [int(r) for r in args.routes.split(",")] if args.routes else None
+    areas = args.areas.split(",") if args.areas else None
+    out = args.out or f"results/lesion_town{args.town}_{args.density}"
+    lesion_study(args.checkpoint, args.town, args.density, parse_weathers(args.weathers), args.seeds, out,
+                 workers=args.workers, routes=routes, mode=args.mode, areas=areas, max_steps=args.max_steps)
+    print((Path(out) / "lesion.md").read_text())
+    print(f"-> {out}/lesion.json, lesion.md, lesion.png")
+    return 0
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add the model's subcommands (train, gradcam) to the `bid` parser."""
     t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
@@ -72,3 +86,17 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--preset", choices=PRESETS, default=None,
                    help="refuse a checkpoint of another preset")
     g.set_defaults(func=_gradcam)
+
+    le = sub.add_parser("lesion", help="closed-loop benchmark with each brain area switched off in turn")
+    le.add_argument("--checkpoint", required=True)
+    le.add_argument("--town", default="02")
+    le.add_argument("--density", default="normal")
+    le.add_argument("--weathers", default="test")
+    le.add_argument("--seeds", type=int, default=1)
+    le.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
+    le.add_argument("--areas", default=None, help="a comma-separated subset (default: all but V1)")
+    le.add_argument("--mode", choices=("zero", "mean"), default="zero")
+    le.add_argument("--workers", type=int, default=2)
+    le.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke runs)")
+    le.add_argument("--out", default=None)
+    le.set_defaults(func=_lesion)

@@ -123,7 +123,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
-                       video=args.video, progress=not args.json)
+                       video=args.video, progress=not args.json, max_steps=args.max_steps)
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
@@ -238,6 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")
     ev.add_argument("--video", action="store_true", help="write each episode's MP4 with overlays")
+    ev.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke runs)")
     ev.add_argument("--out", default=None, help="results folder (default results/TOWN_AGENT_DENSITY)")
     ev.add_argument("--compare", nargs="+", default=None, metavar="RESULTS", help="print results folders side by side")
     ev.add_argument("--json", action="store_true")

@@ -79,8 +79,9 @@ def plan_eval(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], 
 
 # ----------------------------------------------------------------------------- agents
 
-def load_agent(spec: str, checkpoint: str | None = None):
-    """An agent instance from a name or `module:Class` (BidError naming the problem)."""
+def load_agent(spec: str, checkpoint: str | None = None, options: dict | None = None):
+    """An agent instance from a name or `module:Class` (BidError naming the problem);
+    options are keyword arguments for an entry-point agent (e.g. the BID agent's lesions)."""
     if spec in AGENTS:
         return make_agent(spec)
     if ":" not in spec:
@@ -88,7 +89,7 @@ def load_agent(spec: str, checkpoint: str | None = None):
         if spec in eps:
             if checkpoint is None:
                 raise BidError(f"the {spec!r} agent needs --checkpoint PATH (a run's best.pt or last.pt)")
-            return eps[spec].load()(checkpoint)
+            return eps[spec].load()(checkpoint, **(options or {}))
         known = sorted({*AGENTS, *eps})
         raise BidError(f"unknown agent {spec!r}; use one of {', '.join(known)} or module:Class")
     module, _, cls = spec.partition(":")
@@ -113,11 +114,11 @@ def uses_camera(spec: str, agent) -> bool:
 _STATE: dict[str, Any] = {}
 
 
-def _init_worker(agent_spec: str, checkpoint: str | None) -> None:
+def _init_worker(agent_spec: str, checkpoint: str | None, options: dict | None = None) -> None:
     import cv2
 
     cv2.setNumThreads(1)  # one core per worker; a torch agent sets its own threads
-    _STATE["agent"] = load_agent(agent_spec, checkpoint)
+    _STATE["agent"] = load_agent(agent_spec, checkpoint, options)
     _STATE["spec"] = agent_spec
     _STATE["renderers"] = {}
 
@@ -134,7 +135,7 @@ def _renderer(town, weather: str, seed: int):
     return cache[key]
 
 
-def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: bool) -> dict:
+def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: bool, max_steps: int | None = None) -> dict:
     """One episode in this worker; returns its line for episodes.jsonl."""
     from bid_sim.episode import run_episode
 
@@ -160,7 +161,8 @@ def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: bool) -> di
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         result = run_episode(town, ep.route, ep.weather, ep.density, ep.seed, agent,
-                             recorder=_Tee(recorders) if recorders else None, renderer=renderer, replan=True)
+                             recorder=_Tee(recorders) if recorders else None, renderer=renderer, replan=True,
+                             max_steps=max_steps)
     except BaseException:
         if writer is not None:
             writer.abort()
@@ -197,16 +199,17 @@ class _Tee:
 def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int, agent: str,
              out: str | os.PathLike, checkpoint: str | None = None, workers: int = 1,
              routes: list[int] | None = None, record: bool = False, video: bool = False,
-             progress: bool = True) -> dict:
-    """Runs the plan's unfinished episodes, appending to episodes.jsonl; writes the summary."""
+             progress: bool = True, options: dict | None = None, max_steps: int | None = None) -> dict:
+    """Runs the plan's unfinished episodes, appending to episodes.jsonl; writes the summary.
+    max_steps cuts episodes short (a smoke run: they end as timeouts)."""
     out = Path(out)
     plan = plan_eval(town, densities, weathers, seeds, routes)
     if checkpoint is not None and not Path(checkpoint).exists():
         raise BidError(f"checkpoint {checkpoint} does not exist; give a run's best.pt or last.pt")
-    load_agent(agent, checkpoint)  # fail here, once, before any worker starts
+    load_agent(agent, checkpoint, options)  # fail here, once, before any worker starts
     config = {"town": resolve_town(town).name, "densities": list(densities), "weathers": list(weathers),
               "seeds": seeds, "agent": agent, "checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
-              "routes": routes, "software": f"bid-sim {__version__}"}
+              "routes": routes, "options": options or None, "max_steps": max_steps, "software": f"bid-sim {__version__}"}
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -241,13 +244,13 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
 
     try:
         if workers <= 1 or len(todo) <= 1:
-            _init_worker(agent, checkpoint)
+            _init_worker(agent, checkpoint, options)
             for ep in todo:
-                finished(run_eval_episode(ep, str(out), record, video))
+                finished(run_eval_episode(ep, str(out), record, video, max_steps))
         else:
             with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn"),
-                                     initializer=_init_worker, initargs=(agent, checkpoint)) as pool:
-                futures: dict[Future, EvalEpisode] = {pool.submit(run_eval_episode, ep, str(out), record, video): ep
+                                     initializer=_init_worker, initargs=(agent, checkpoint, options)) as pool:
+                futures: dict[Future, EvalEpisode] = {pool.submit(run_eval_episode, ep, str(out), record, video, max_steps): ep
                                                       for ep in todo}
                 pending = set(futures)
                 try:

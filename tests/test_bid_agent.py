@@ -73,3 +73,14 @@ def test_bid_agent_needs_a_checkpoint(tmp_path, capsys):
     assert main(["evaluate", "--town", "02", "--agent", "bid", "--checkpoint", str(bad),
                  "--out", str(tmp_path / "r2")]) == 2
     assert "checkpoint" in capsys.readouterr().err
+
+
+def test_lesion_study_writes_table_and_chart(checkpoint, tmp_path, capsys):
+    assert main(["lesion", "--checkpoint", str(checkpoint), "--town", "02", "--density", "none",
+                 "--weathers", "WetSunset", "--routes", "3", "--areas", "IT,OFC", "--workers", "1", "--max-steps", "30",
+                 "--out", str(tmp_path)]) == 0
+    md = (tmp_path / "lesion.md").read_text()
+    assert "| intact |" in md and "| IT |" in md and "| OFC |" in md
+    assert (tmp_path / "lesion.png").stat().st_size > 1000
+    assert main(["lesion", "--checkpoint", str(checkpoint), "--areas", "V1", "--out", str(tmp_path / "x")]) == 2
+    assert "cannot lesion 'V1'" in capsys.readouterr().err
