@@ -237,6 +237,7 @@ class World:
         traci.vehicle.setWidth(vid, size[1])
         if hold:
             traci.vehicle.setSpeedMode(vid, 0)
+            traci.vehicle.setLaneChangeMode(vid, 0)  # held means held: no lane changes either
             traci.vehicle.setSpeed(vid, speed_mps)
         self.traffic.actors[vid] = ActorInfo("vehicle", tuple(size), colour)
 
