@@ -30,7 +30,7 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(BID) towns
-	$(BID) episode --town $(TOWN) --density $(DENSITY) --route 0 --seed 0
+	$(BID) episode --town $(TOWN) --density $(DENSITY) --route 0 --seed 0 --agent expert
 
 test: $(STAMP)
 	$(PY) -m pytest tests

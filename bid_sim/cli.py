@@ -179,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--weather", default="ClearNoon")
     e.add_argument("--density", default="normal", help="none, normal or crowded")
     e.add_argument("--seed", type=int, default=0)
-    e.add_argument("--agent", default="lanefollow")
+    e.add_argument("--agent", default="expert", help="expert (default) or lanefollow")
     e.add_argument("--speed", type=float, default=6.0, help="lane follower's speed, m/s")
     e.add_argument("--replan", action="store_true", help="re-plan when the ego leaves its route")
     e.add_argument("--max-steps", type=int, default=None)
