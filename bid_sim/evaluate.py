@@ -22,11 +22,10 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import json
-import multiprocessing as mp
 import os
 import time
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +35,7 @@ from bid_sim import __version__
 from bid_sim import metrics as m
 from bid_sim.agents import AGENTS, make_agent
 from bid_sim.errors import BidError
+from bid_sim.parallel import run_parallel
 from bid_sim.routes import load_routes
 from bid_sim.towns import resolve_town
 from bid_sim.weather import check_weather
@@ -243,25 +243,9 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
         bar.set_postfix(steps_per_s=f"{steps / max(time.perf_counter() - t0, 1e-9):.0f}")
 
     try:
-        if workers <= 1 or len(todo) <= 1:
-            _init_worker(agent, checkpoint, options)
-            for ep in todo:
-                finished(run_eval_episode(ep, str(out), record, video, max_steps))
-        else:
-            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn"),
-                                     initializer=_init_worker, initargs=(agent, checkpoint, options)) as pool:
-                futures: dict[Future, EvalEpisode] = {pool.submit(run_eval_episode, ep, str(out), record, video, max_steps): ep
-                                                      for ep in todo}
-                pending = set(futures)
-                try:
-                    while pending:
-                        ready, pending = wait(pending, return_when=FIRST_COMPLETED)
-                        for fut in ready:
-                            finished(fut.result())
-                except BaseException:
-                    for fut in pending:
-                        fut.cancel()
-                    raise
+        run_parallel(partial(run_eval_episode, out=str(out), record=record, video=video, max_steps=max_steps),
+                     todo, workers, lambda ep, line: finished(line), initializer=_init_worker,
+                     initargs=(agent, checkpoint, options))
     finally:
         bar.close()
     ordered = [done[ep.key] for ep in plan]

@@ -10,11 +10,10 @@ unfinished ones from the start (episodes are deterministic), so an interrupted r
 from __future__ import annotations
 
 import logging
-import multiprocessing as mp
 import os
 import time
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from tqdm import tqdm
@@ -22,6 +21,7 @@ from tqdm import tqdm
 from bid_sim import __version__
 from bid_sim.agents import make_agent
 from bid_sim.errors import BidError
+from bid_sim.parallel import run_parallel
 from bid_sim.recording import EpisodeWriter, partial_path
 from bid_sim.routes import RouteSpec, generate_routes
 from bid_sim.towns import resolve_town
@@ -124,7 +124,7 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
     bar = tqdm(total=len(todo), unit="episode", disable=not progress, desc=f"recording {len(todo)} episodes")
     frames = 0
 
-    def finished(summary: dict) -> None:
+    def finished(summary: dict) -> None:  # in the parent, as each episode completes
         nonlocal frames
         done.append(summary)
         frames += summary["frames"]
@@ -132,28 +132,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         bar.set_postfix(frames=frames, fps=f"{frames / max(time.perf_counter() - t0, 1e-9):.0f}")
 
     try:
-        if workers == 1 or len(todo) <= 1:
-            for s in todo:
-                try:
-                    finished(record_episode(s, out))
-                except Exception as e:  # one episode's failure does not stop the others
-                    failed.append((s.name, _reason(e)))
-        else:
-            with ProcessPoolExecutor(min(workers, len(todo)), mp_context=mp.get_context("spawn")) as pool:
-                futures: dict[Future, EpisodeSpec] = {pool.submit(record_episode, s, out): s for s in todo}
-                pending = set(futures)
-                try:
-                    while pending:
-                        ready, pending = wait(pending, return_when=FIRST_COMPLETED)
-                        for fut in ready:
-                            try:
-                                finished(fut.result())
-                            except Exception as e:
-                                failed.append((futures[fut].name, _reason(e)))
-                except BaseException:
-                    for fut in pending:
-                        fut.cancel()
-                    raise
+        run_parallel(partial(record_episode, out=out), todo, workers, lambda spec, summary: finished(summary),
+                     on_error=lambda spec, e: failed.append((spec.name, _reason(e))))
     finally:
         bar.close()
     wall = time.perf_counter() - t0

@@ -5,22 +5,14 @@ import shutil
 
 import pytest
 import torch
+from conftest import RECORD_PLAN, RECORD_STEPS
 
 from bid_model.data import check_sample
 from bid_model.recordings import open_recordings
 from bid_sim.errors import BidError
-from bid_sim.record import record
 
-STEPS = 25
-PLAN = {"town": "02", "episodes": 2, "weathers": ("ClearNoon", "HardRainNoon"), "densities": ("normal",),
-        "seed": 3, "workers": 1, "agent": "lanefollow", "max_steps": STEPS, "progress": False}
-
-
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    out = tmp_path_factory.mktemp("rec")
-    assert record(out=out, **PLAN)["recorded"] == 2
-    return out
+STEPS = RECORD_STEPS
+PLAN = RECORD_PLAN
 
 
 def test_reader_gives_contract_samples_split_by_episode(recorded, caplog):

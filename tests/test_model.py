@@ -23,13 +23,7 @@ from bid_sim.errors import BidError
 B = 4
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # Tiny tensors gain nothing from threads, and OpenMP threads crawl on a busy machine.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def tiny_model(variant: str = "full", **changes) -> BID:

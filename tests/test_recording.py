@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import RECORD_PLAN, RECORD_STEPS
 from mcap.reader import make_reader
 
 from bid_sim.cli import main
@@ -21,17 +22,8 @@ from bid_sim.recording import decode_jpeg, read_episode, read_snapshots, recover
 from bid_sim.render import Renderer
 from bid_sim.town_map import load_town_map
 
-STEPS = 25
-PLAN = {"town": "02", "episodes": 2, "weathers": ("ClearNoon", "HardRainNoon"), "densities": ("normal",),
-        "seed": 3, "workers": 1, "agent": "lanefollow", "max_steps": STEPS, "progress": False}
-
-
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    out = tmp_path_factory.mktemp("rec")
-    summary = record(out=out, **PLAN)
-    assert summary["recorded"] == 2 and not summary["failed"]
-    return out
+STEPS = RECORD_STEPS
+PLAN = RECORD_PLAN
 
 
 def files(folder: Path) -> list[Path]:

@@ -18,13 +18,7 @@ from bid_model.train import METRIC_COLUMNS, train
 from bid_sim.cli import main as bid
 from bid_sim.errors import BidError
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def quick_run(epochs: int) -> RunConfig:
