@@ -148,7 +148,7 @@ def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: bool, max_s
         from bid_sim.recording import EpisodeWriter
         from bid_sim.town_map import load_town_map
 
-        facts = {"town": town.name, "route": str(ep.route), "weather": ep.weather, "density": ep.density,
+        facts = {"town": town.name, "town_source": ep.town, "route": str(ep.route), "weather": ep.weather, "density": ep.density,
                  "seed": str(ep.seed), "agent": spec, "software": f"bid-sim {__version__}"}
         writer = EpisodeWriter(Path(out) / "recordings" / f"{ep.name}.mcap", facts,
                                [h.position for h in load_town_map(town).signal_heads])

@@ -82,7 +82,7 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     town = resolve_town(spec.town)
     town_map = load_town_map(town)
     renderer = Renderer(town_map, weather=spec.weather, seed=spec.seed)
-    facts = {"town": town.name, "route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->"
+    facts = {"town": town.name, "town_source": spec.town, "route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->"
              f"{spec.route.goal_edge}@{spec.route.goal_pos_m}", "episode": str(spec.index),
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",

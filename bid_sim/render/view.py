@@ -118,12 +118,12 @@ def view(town: str, route: int, density: str, seed: int, weather: str, out: str,
     return f"wrote {out}: {n} frames at {VIDEO_FPS} fps ({n / VIDEO_FPS:.1f} s)"
 
 
-
 def rerender(src: str | os.PathLike, weather: str, out: str | os.PathLike, workers: int = 1,
              seed: int | None = None) -> str:
     """Re-renders a recording (or a folder of them) from its scene states under another
     weather, into a new recording with the same steps, controls and states."""
     from bid_sim.recording import EpisodeWriter, read_facts, read_snapshots
+    from bid_sim.town_map import load_town_map
 
     check_weather(weather)
     src, out = Path(src), Path(out)
@@ -139,9 +139,8 @@ def rerender(src: str | os.PathLike, weather: str, out: str | os.PathLike, worke
     frames = 0
     for f, dst in pairs:
         facts = read_facts(f)
-        town = resolve_town(facts["town"][-2:] if facts["town"].startswith("Town") else facts["town"])
-        from bid_sim.town_map import load_town_map
-
+        # town_source: the --town the recording was made with (01, 02, 05 or a folder).
+        town = resolve_town(facts.get("town_source") or facts["town"].removeprefix("Town"))
         heads = [h.position for h in load_town_map(town).signal_heads]
         ep_seed = int(facts.get("seed", 0)) if seed is None else seed
         writer = EpisodeWriter(dst, {**facts, "weather": weather, "rendered_from": f.name}, heads)
