@@ -57,7 +57,6 @@ STEP_NS = 100_000_000
 PARTIAL = ".partial"
 JPEG_QUALITY = 90
 CHUNK_BYTES = 256 * 1024  # a few frames: a crash loses well under a second
-TOPICS = ("/camera/rgb", "/ego/control", "/ego/state", "/nav/command", "/scene", "/tf")
 _LIGHT_RGBA = {RED: (1.0, 0.1, 0.1, 1.0), YELLOW: (1.0, 0.8, 0.1, 1.0), GREEN: (0.1, 0.9, 0.3, 1.0),
                OFF: (0.2, 0.2, 0.2, 1.0)}
 

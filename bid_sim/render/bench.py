@@ -26,25 +26,13 @@ from bid_sim.towns import resolve_town
 CAR_SIZE = (4.6, 1.9, 1.5)
 
 
-class _Collect:
-    """An episode recorder that keeps the snapshots."""
-
-    def __init__(self) -> None:
-        self.snaps: list[Snapshot] = []
-
-    def write(self, snap: Snapshot, frame, control) -> None:
-        self.snaps.append(snap)
-
-
 def collect_snapshots(town: str = "01", density: str = "crowded", route: int = 0, seed: int = 0,
                       frames: int = 240) -> list[Snapshot]:
     """Snapshots of a real episode: the lane follower drives a route with SUMO traffic."""
     from bid_sim.agents import LaneFollower
-    from bid_sim.episode import run_episode
+    from bid_sim.render.view import episode_snapshots
 
-    rec = _Collect()
-    run_episode(town, route, "ClearNoon", density, seed, LaneFollower(6.0), recorder=rec, max_steps=frames)
-    return rec.snaps
+    return episode_snapshots(town, route, density, seed, LaneFollower(6.0), frames)
 
 
 def with_town_vehicles(snap: Snapshot, town_map: TownMap, n: int, seed: int = 0,

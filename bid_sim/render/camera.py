@@ -88,17 +88,6 @@ def camera_poses(rig: CameraRig, x: float, y: float, yaw: float) -> list[Pose]:
     return poses
 
 
-def to_camera(pose: Pose, pts: np.ndarray) -> np.ndarray:
-    """World points (..., 3) into camera coordinates (..., 3): x right, y down, z forward."""
-    dx = pts[..., 0] - pose.x
-    dy = pts[..., 1] - pose.y
-    out = np.empty(pts.shape, dtype=np.float64)
-    out[..., 0] = dx * pose.right[0] + dy * pose.right[1]
-    out[..., 1] = pose.z - pts[..., 2]
-    out[..., 2] = dx * pose.fwd[0] + dy * pose.fwd[1]
-    return out
-
-
 def project(rig: CameraRig, cam: np.ndarray) -> np.ndarray:
     """Camera points (..., 3) with z >= NEAR_M to fixed-point canvas pixels (..., 2) int32."""
     f = rig.focal_px * ONE
