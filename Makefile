@@ -8,8 +8,10 @@ STAMP := $(VENV)/.installed
 TOWN ?= 02
 DENSITY ?= normal
 
-EPISODES ?= 24
+EPISODES ?= 48
 WORKERS ?= 2
+# Share of driving time with steering noise (recovery data; labels stay the expert's).
+PERTURB ?= 0.2
 # `make record` records Town01 unless TOWN is given (the demo's default is Town02).
 RECORD_TOWN = $(if $(filter command line environment,$(origin TOWN)),$(TOWN),01)
 
@@ -25,7 +27,7 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,cluster]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -54,7 +56,8 @@ evaluate: $(STAMP)
 
 # Demonstrations: the expert over random routes, four train weathers, three densities.
 record: $(STAMP)
-	$(BID) record --town $(RECORD_TOWN) --episodes $(EPISODES) --workers $(WORKERS) --out data/town$(RECORD_TOWN)
+	$(BID) record --town $(RECORD_TOWN) --episodes $(EPISODES) --perturb $(PERTURB) --workers $(WORKERS) \
+		--out data/town$(RECORD_TOWN)
 
 towns: $(STAMP)
 	$(BID) towns

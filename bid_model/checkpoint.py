@@ -7,6 +7,8 @@ A checkpoint is a dict: `config` (RunConfig.to_dict), `model` (state dict), `opt
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import subprocess
 from pathlib import Path
@@ -61,6 +63,31 @@ def load_model(path: str | Path, preset: str | None = None,
                        f"{config.model.variant!r} model it names; was it written by another "
                        "version of bid_model?") from e
     return model.to(device).eval(), config
+
+
+SHIPPED_KEYS = ("config", "model", "epoch", "history", "best_val_loss", "git_hash", "version")
+
+
+def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
+                      recipe: str | None = None) -> dict[str, Any]:
+    """A small checkpoint to ship or share, from run folder `run`: the model and how it came to
+    be (config, metrics history, git hash, the run's dataset.json, `recipe`), without the
+    optimiser and scheduler state; `out` with a `.json` card beside it. Returns the card."""
+    run, out = Path(run), Path(out)
+    ckpt = load_checkpoint(run / which)
+    dataset_path = run / "dataset.json"
+    dataset = json.loads(dataset_path.read_text()) if dataset_path.is_file() else None
+    payload = {k: ckpt[k] for k in SHIPPED_KEYS if k in ckpt}
+    payload["dataset"] = json.dumps(dataset)  # a string: weights_only loading takes plain types
+    payload["recipe"] = recipe or ""
+    best = min(payload.get("history") or [{}], key=lambda r: r.get("val_loss", math.inf))
+    card = {"checkpoint": out.name, "from": str(run / which), "epoch": payload.get("epoch"),
+            "git_hash": payload.get("git_hash"), "version": payload.get("version"), "recipe": recipe,
+            "config": payload["config"], "best_epoch": best, "dataset": dataset}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out, payload)
+    out.with_suffix(".json").write_text(json.dumps(card, indent=1, default=str) + "\n")
+    return card
 
 
 def check_preset(config: RunConfig, preset: str | None, path: str | Path) -> None:

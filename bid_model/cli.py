@@ -25,8 +25,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-size", type=int, default=None)
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--seed", type=int, default=None)
-    p.add_argument("--speed-input", action="store_true",
-                   help="feed the measured speed to the network (off in the paper)")
+    p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
+                   help="feed the measured speed to the network (off in paper, on in small)")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")
@@ -68,6 +68,16 @@ def _lesion(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export(args: argparse.Namespace) -> int:
+    from bid_model.checkpoint import export_checkpoint
+
+    card = export_checkpoint(args.run, args.out, args.which, args.recipe)
+    size = Path(args.out).stat().st_size / 1e6
+    print(f"{args.out}: {size:.1f} MB, epoch {card['epoch']} of {args.run} (git {card['git_hash']}); "
+          f"card {Path(args.out).with_suffix('.json')}")
+    return 0
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add the model's subcommands (train, gradcam) to the `bid` parser."""
     t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
@@ -86,6 +96,14 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--preset", choices=PRESETS, default=None,
                    help="refuse a checkpoint of another preset")
     g.set_defaults(func=_gradcam)
+
+    x = sub.add_parser("export", help="a small checkpoint to ship: model, config, metrics, data recipe; "
+                                      "no optimiser state")
+    x.add_argument("run", help="a run folder of `bid train`")
+    x.add_argument("--out", required=True, help="the .pt to write (a .json card goes beside it)")
+    x.add_argument("--which", default="best.pt", help="best.pt (default) or last.pt")
+    x.add_argument("--recipe", default=None, help="how the data and the run were made (commands)")
+    x.set_defaults(func=_export)
 
     le = sub.add_parser("lesion", help="closed-loop benchmark with each brain area switched off in turn")
     le.add_argument("--checkpoint", required=True)

@@ -149,8 +149,11 @@ def build_cache(index: _Index, folder: Path, frame_hw: tuple[int, int], workers:
 class RecordingDataset(Dataset):
     """Samples (bid_model.data contract) of chosen rows of an index."""
 
-    def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None):
+    def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None,
+                 still: np.ndarray | None = None):
         self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
+        # Rows shown standing still: frame t−1 = frame t and speed 0 (see balance_rows).
+        self.still = np.zeros(len(self.rows), dtype=bool) if still is None else np.asarray(still, dtype=bool)
         self.cache = cache
         self._mm: np.ndarray | None = None  # opened lazily: once per DataLoader worker
 
@@ -170,8 +173,11 @@ class RecordingDataset(Dataset):
     def __getitem__(self, i: int) -> dict[str, Any]:
         ix = self.index
         j = int(self.rows[i])
-        return {"frame": self._frame(j), "prev_frame": self._frame(int(ix.prev[j])),
-                "command": int(ix.command[j]), "speed_mps": float(ix.speed[j]), "steer": float(ix.steer[j]),
+        frame = self._frame(j)
+        still = bool(self.still[i])
+        return {"frame": frame, "prev_frame": frame if still else self._frame(int(ix.prev[j])),
+                "command": int(ix.command[j]), "speed_mps": 0.0 if still else float(ix.speed[j]),
+                "steer": float(ix.steer[j]),
                 "accel": float(ix.accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
 
     def __getstate__(self) -> dict:
@@ -180,9 +186,55 @@ class RecordingDataset(Dataset):
         return state
 
 
+STOPPED_MPS = 0.1  # below this the ego stands
+START_MPS = 2.0  # below this, with throttle, it is moving off
+GO_LOOKAHEAD = 10  # standing frames this close before a start are kept: the cue to go is in them
+
+
+def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
+                 start_repeat: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training rows rebalanced against the stop/go imbalance of driving data, and which of
+    them to show as standing still.
+
+    Demonstrations stand still much of the time (a red light lasts up to 45 s) holding the
+    brake, and move off in a handful of frames, so a network learns "keep standing" as its
+    safe bet and never starts in closed loop. Worse, the frames of moving off show motion
+    (frame t−1 differs), so it learns "go when already moving": at a standstill, nothing
+    moves, and it never starts (the inertia problem of imitation learning). So: keep every
+    round(1/stop_keep)-th standing, braking frame (by step number, deterministic) and all
+    of those within GO_LOOKAHEAD steps before a start; repeat each moving-off frame (slow,
+    throttle) `start_repeat` times, the repeats shown standing still (frame t−1 = frame t,
+    speed 0) with the expert's throttle as the label. Returns (rows, still), sorted.
+    """
+    if not 0.0 < stop_keep <= 1.0 or start_repeat < 1:
+        raise BidError(f"stop_keep must be in (0, 1] and start_repeat >= 1, got {stop_keep}, {start_repeat}")
+    rows = np.asarray(rows, dtype=np.int64)
+    standing = (index.speed < STOPPED_MPS) & (index.accel <= 0.0)
+    starting = (index.speed < START_MPS) & (index.accel > 0.0)
+    # Standing frames that lead to a start within GO_LOOKAHEAD steps of the same episode.
+    soon = np.zeros(len(index.step), dtype=bool)
+    for k in range(1, GO_LOOKAHEAD + 1):
+        ahead = np.r_[starting[k:], np.zeros(k, dtype=bool)]
+        same = np.r_[index.episode[k:] == index.episode[:-k], np.zeros(k, dtype=bool)]
+        soon |= ahead & same
+    every = max(1, round(1.0 / stop_keep))
+    keep = ~standing[rows] | soon[rows] | (index.step[rows] % every == 0)
+    kept = rows[keep]
+    repeats = np.repeat(kept[starting[kept]], start_repeat - 1)
+    all_rows = np.r_[kept, repeats]
+    still = np.r_[np.zeros(len(kept), dtype=bool), np.ones(len(repeats), dtype=bool)]
+    order = np.lexsort((still, all_rows))
+    return all_rows[order], still[order]
+
+
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
-                    cache: bool = True) -> tuple[RecordingDataset, RecordingDataset, dict]:
-    """(train, validation, description) of the recordings in `folder`, split by episode."""
+                    cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1
+                    ) -> tuple[RecordingDataset, RecordingDataset, dict]:
+    """(train, validation, description) of the recordings in `folder`, split by episode.
+
+    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat)`; the
+    validation set keeps every frame, so its errors stay those of real driving.
+    """
     folder = Path(folder)
     files, partial = find_recordings(folder)
     for p in partial:
@@ -199,7 +251,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     cache_path = build_cache(index, folder, tuple(frame_hw)) if cache else None
     train_eps, val_eps = split_episodes(range(len(files)), val_fraction, seed)
     is_val = np.isin(index.episode, val_eps)
-    train = RecordingDataset(index, np.flatnonzero(~is_val), frame_hw, cache_path)
+    train_rows = np.flatnonzero(~is_val)
+    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat)
+    train = RecordingDataset(index, balanced, frame_hw, cache_path, still)
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
@@ -207,6 +261,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     description = {
         "folder": str(folder), "recordings": len(files), "skipped_partial": [str(p) for p in partial],
         "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
+        "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
+        "train_shown_still": int(still.sum()),
+        "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),
         "train_episodes": len(train_eps), "val_episodes": [files[e].name for e in val_eps],
         "towns": dict(towns), "weathers": dict(weathers), "densities": dict(densities),
         "frame_hw": list(frame_hw), "cache": str(cache_path) if cache_path else None,

@@ -1,5 +1,16 @@
-"""Training of the BID model: `bid train`, or `python -m bid_model.train` (also under
-`torchrun --nproc-per-node=N -m bid_model.train ...` for DDP).
+"""Training of the BID model: `bid train`, or `python -m bid_model.train`, also under torchrun
+for DDP (Gloo on CPUs, NCCL on GPUs), N processes on one machine:
+
+    torchrun --standalone --nproc-per-node=N -m bid_model.train --preset small --data data/town01
+
+or on several machines, the same command on each (HOST: one of them, reachable from all):
+
+    torchrun --nnodes=2 --nproc-per-node=N --rdzv-backend=c10d --rdzv-endpoint=HOST:29400 --rdzv-id=RUN -m bid_model.train --preset small --data data/town01 --out runs/RUN
+
+Every process needs the data at the same path; process 0 writes the run folder (--resume
+reads it in every process: keep it on a shared filesystem). The global batch stays the
+preset's, each process trains on whole episodes of its own, and a job of N processes ends
+where one process with shards=N does (see train).
 
 L1 loss on (steer, accel) weighted λ_s = λ_a = 0.5; AdamW with weight decay on weights only;
 the lr halves at the (scaled) milestones. A run folder holds config.json (resolved config,
@@ -28,12 +39,12 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from torch.utils.data import DataLoader, Dataset, DistributedSampler
+from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 from tqdm import tqdm
 
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
 from bid_model.config import RunConfig, TrainConfig, preset, with_variant
-from bid_model.data import check_sample, command_one_hot, synthetic_split
+from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
 from bid_model.model import BID
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
@@ -95,7 +106,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
             raise
         raise BidError("this version has no recording reader (bid_model/recordings.py); "
                        "train on --synthetic") from e
-    train_set, val_set, description = open_recordings(folder, hw, tc.val_fraction, tc.seed)
+    train_set, val_set, description = open_recordings(folder, hw, tc.val_fraction, tc.seed,
+                                                      stop_keep=tc.stop_keep, start_repeat=tc.start_repeat)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -139,6 +151,147 @@ def pick_device(name: str, dist: Dist) -> torch.device:
     if name != "cpu":
         raise BidError(f"unknown device {name!r}; use auto, cpu or cuda")
     return torch.device("cpu")
+
+
+def item_episodes(dataset: Dataset) -> np.ndarray:
+    """The episode of every item of a training set, as an (N,) int array: recordings
+    (bid_model.recordings.RecordingDataset), generated data (SyntheticDriving), Subsets of
+    them; any other dataset is read item by item."""
+    if isinstance(dataset, Subset):
+        return item_episodes(dataset.dataset)[np.asarray(dataset.indices, dtype=np.int64)]
+    if isinstance(dataset, SyntheticDriving):
+        return np.arange(len(dataset)) // dataset.episode_len
+    if hasattr(dataset, "index") and hasattr(dataset, "rows"):  # a RecordingDataset
+        return np.asarray(dataset.index.episode)[dataset.rows]
+    log.info("reading the episode of each of %d items", len(dataset))
+    return np.array([int(dataset[i]["episode"]) for i in range(len(dataset))], dtype=np.int64)
+
+
+class EpisodeShardSampler(Sampler[list[int]]):
+    """Batches in which each process of a DDP job trains on whole episodes of its own.
+
+    Every epoch, a permutation seeded by (seed, epoch) deals the episodes to `shards` shards,
+    each episode to the shard with the fewest items so far (balanced to within one episode).
+    A shard's items are shuffled, seeded by (seed, epoch, shard), and cut into batches of
+    batch_size // shards items; global batch k is the union of the shards' k-th batches.
+    Process `rank` of `world` (shards a multiple of world) yields as its batch k the k-th
+    batches of shards rank, rank + world, ... concatenated. So one process with shards=N
+    yields exactly the global batches of an N-process job, and every process yields the same
+    number of batches, which DDP needs (each step waits for all processes). All shards are cut
+    to the smallest one's length: up to about one episode of items per shard sits out an
+    epoch, a different one each epoch. Deterministic per (seed, epoch), like a resumed run.
+    """
+
+    def __init__(self, episodes: np.ndarray, batch_size: int, shards: int = 1, rank: int = 0,
+                 world: int = 1, seed: int = 0):
+        if shards < 1 or shards % world:
+            raise BidError(f"{shards} data shards cannot be split over {world} processes; "
+                           "use a multiple of the process count")
+        ids, self.episode_of = np.unique(np.asarray(episodes, dtype=np.int64), return_inverse=True)
+        if len(ids) < shards:
+            raise BidError(f"{len(ids)} training episodes cannot be shared by {shards} processes; "
+                           "record more episodes or run fewer processes")
+        self.sizes = np.bincount(self.episode_of, minlength=len(ids))
+        self.batch = max(1, batch_size // shards)  # per shard
+        self.shards, self.mine, self.seed, self.epoch = shards, range(rank, shards, world), seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def _shards(self) -> tuple[list[np.ndarray], int]:
+        """(each shard's items in order, cut to a whole number of batches; batch size)."""
+        rng = np.random.default_rng((self.seed, self.epoch))
+        load = np.zeros(self.shards, dtype=np.int64)
+        owner = np.empty(len(self.sizes), dtype=np.int64)
+        for e in rng.permutation(len(self.sizes)):
+            owner[e] = s = int(np.argmin(load))  # the first of the least loaded
+            load[s] += self.sizes[e]
+        batch = min(self.batch, int(load.min()))
+        keep = int(load.min()) // batch * batch
+        items = []
+        for s in range(self.shards):
+            idx = np.flatnonzero(owner[self.episode_of] == s)
+            items.append(np.random.default_rng((self.seed, self.epoch, s)).permutation(idx)[:keep])
+        return items, batch
+
+    def __iter__(self):
+        items, b = self._shards()
+        for k in range(len(items[0]) // b):
+            yield np.concatenate([items[s][k * b:(k + 1) * b] for s in self.mine]).tolist()
+
+    def __len__(self) -> int:
+        items, b = self._shards()
+        return len(items[0]) // b
+
+
+class _AllReduceSum(torch.autograd.Function):
+    """Sum over the processes; the gradient of each process's input is the sum of the
+    processes' output gradients (every process's loss depends on every input)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
+        x = x.clone()
+        torch.distributed.all_reduce(x)
+        return x
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        grad = grad.clone()
+        torch.distributed.all_reduce(grad)
+        return grad
+
+
+class CPUSyncBatchNorm(nn.BatchNorm2d):
+    """BatchNorm2d whose training statistics span every process of the job, over Gloo on
+    CPUs (torch's nn.SyncBatchNorm runs on GPUs only): the mean and variance of the global
+    batch, as one process computes them on the whole batch, and gradients through them."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not (self.training and torch.distributed.is_initialized()):
+            return super().forward(x)
+        dims, shape = (0, 2, 3), (1, -1, 1, 1)
+        count = x.new_full((1,), x.numel() // x.shape[1])
+        total = _AllReduceSum.apply(torch.cat([x.sum(dims), count]))
+        n = total[-1]
+        mean = total[:-1] / n
+        centred = x - mean.view(shape)
+        var = _AllReduceSum.apply((centred * centred).sum(dims)) / n
+        y = centred * torch.rsqrt(var + self.eps).view(shape)
+        if self.affine:
+            y = y * self.weight.view(shape) + self.bias.view(shape)
+        if self.track_running_stats:
+            with torch.no_grad():
+                self.num_batches_tracked.add_(1)
+                f = self.momentum if self.momentum is not None else 1.0 / int(self.num_batches_tracked)
+                self.running_mean.mul_(1 - f).add_(mean, alpha=f)
+                self.running_var.mul_(1 - f).add_(var * n / (n - 1), alpha=f)
+        return y
+
+
+def sync_batch_norm(module: nn.Module, device: torch.device) -> nn.Module:
+    """`module` with batch norms that normalise by the statistics of the global batch (under
+    DDP): nn.SyncBatchNorm on GPUs, CPUSyncBatchNorm on CPUs. Parameters and buffers are kept
+    (the optimiser's stay valid); state dict keys do not change."""
+    if device.type != "cpu":
+        return nn.SyncBatchNorm.convert_sync_batchnorm(module)
+    for name, child in module.named_children():
+        if type(child) is nn.BatchNorm2d:
+            sync = CPUSyncBatchNorm(child.num_features, child.eps, child.momentum, child.affine,
+                                    child.track_running_stats)
+            sync._parameters, sync._buffers = child._parameters, child._buffers
+            sync.train(child.training)
+            module.add_module(name, sync)
+        else:
+            sync_batch_norm(child, device)
+    return module
+
+
+def _average_buffers(model: nn.Module, dist: Dist) -> None:
+    """Each floating-point buffer set to its mean over the processes (see train)."""
+    for b in model.buffers():
+        if b.is_floating_point():
+            torch.distributed.all_reduce(b)
+            b.div_(dist.world)
 
 
 def _autocast(device: torch.device):
@@ -239,12 +392,23 @@ def _plot(history: list[dict[str, Any]], val: dict[str, Any] | None, out: Path) 
 def train(out: Path, config: RunConfig | None = None, *, data: Path | None = None,
           synthetic: bool = False, resume: bool = False, expect_preset: str | None = None,
           device: str = "auto", workers: int | None = None, stop_after: int | None = None,
-          progress: bool = True) -> list[dict[str, Any]]:
+          progress: bool = True, shards: int | None = None) -> list[dict[str, Any]]:
     """Train into run folder `out`; returns the metrics rows of all epochs so far.
 
     With `resume`, continue from out/last.pt with its saved config (`config`, if given, must
     equal it; `expect_preset` must match it). `stop_after` ends this call after that many
     epochs (the run stays resumable). `data` is a folder of recordings, unless `synthetic`.
+
+    Under torchrun (DDP) each process trains on whole episodes of its own
+    (EpisodeShardSampler) and the global batch stays tc.batch_size. `shards` (default: the
+    number of processes) cuts the batches as for that many processes, so one process with
+    shards=N sees exactly the global batches of an N-process job, and ends with the same
+    weights up to float rounding: gradients are averaged over equal shares of the global
+    batch, batch norms use the statistics of the global batch (sync_batch_norm), and buffers
+    stay per process during an epoch (no broadcast) and are averaged after it, which makes
+    the areas' running mean activations (linear in the batch means) those of the global
+    batch. Only dropout differs (masks are drawn per process): the tiny and small presets
+    have none.
     """
     out = Path(out)
     ckpt = None
@@ -270,8 +434,11 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     train_set, val_set, description = open_data(config, data, synthetic)
     check_sample(train_set[0], config.model.frame_hw)
 
+    shards = dist.world if shards is None else shards
     torch.manual_seed(tc.seed)
     model = BID(config.model).to(dev)
+    if dist.world > 1:
+        model = sync_batch_norm(model, dev)
     opt = make_optimizer(model, tc)
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(tc.milestones), tc.lr_gamma)
     start, history, best = 0, [], math.inf
@@ -285,7 +452,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     if dist.main:
         out.mkdir(parents=True, exist_ok=True)
         _write_text_atomic(out / "config.json", json.dumps(
-            {**config.to_dict(), **meta, "device": str(dev), "world_size": dist.world},
+            {**config.to_dict(), **meta, "device": str(dev), "world_size": dist.world,
+             "shards": shards},
             indent=1) + "\n")
         _write_text_atomic(out / "dataset.json",
                            json.dumps(description, indent=1, default=str) + "\n")
@@ -293,25 +461,30 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     net: nn.Module = model
     if dist.world > 1:
         net = nn.parallel.DistributedDataParallel(
-            model, device_ids=[dev.index] if dev.type == "cuda" else None)
+            model, device_ids=[dev.index] if dev.type == "cuda" else None,
+            broadcast_buffers=False)  # averaged after each epoch instead (see the docstring)
     n_workers = tc.workers if workers is None else workers
-    batch = max(1, tc.batch_size // dist.world)  # the global batch stays tc.batch_size
-    sampler = DistributedSampler(train_set, dist.world, dist.rank, shuffle=True, seed=tc.seed)
-    loader = DataLoader(train_set, batch, sampler=sampler, num_workers=n_workers,
-                        pin_memory=dev.type == "cuda",
-                        # a last batch of 1 would break batch norm
-                        drop_last=len(sampler) > batch)
-    val_loader = DataLoader(val_set, max(batch, 64), shuffle=False, num_workers=n_workers)
+    # Whole batches only (a last batch of 1 would break batch norm), the same count in every
+    # process; the global batch stays tc.batch_size.
+    sampler = EpisodeShardSampler(item_episodes(train_set), tc.batch_size, shards, dist.rank,
+                                  dist.world, tc.seed)
+    loader = DataLoader(train_set, batch_sampler=sampler, num_workers=n_workers,
+                        pin_memory=dev.type == "cuda")
+    val_loader = DataLoader(val_set, max(tc.batch_size // dist.world, 64), shuffle=False,
+                            num_workers=n_workers)
 
     end = tc.epochs if stop_after is None else min(tc.epochs, start + stop_after)
     last_plot = -math.inf
     for epoch in range(start, end):
         sampler.set_epoch(epoch)
-        torch.manual_seed(tc.seed * 1_000_003 + epoch)  # dropout & workers: same on resume
+        # Dropout & workers: the same on resume, other masks in each process.
+        torch.manual_seed(tc.seed * 1_000_003 + epoch + 7_919 * dist.rank)
         lr = opt.param_groups[0]["lr"]
         t0 = time.perf_counter()
         desc = f"epoch {epoch + 1}/{tc.epochs}" if progress and dist.main else None
         loss_sum, samples = _all_sum(train_epoch(net, loader, opt, tc, dev, desc), dist, dev)
+        if dist.world > 1:
+            _average_buffers(model, dist)
         train_s = time.perf_counter() - t0
         sched.step()
         if not dist.main:
@@ -358,7 +531,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     """The run config the flags ask for; None with --resume (the saved config is used)."""
     flags = {"--variant": args.variant, "--epochs": args.epochs, "--batch-size": args.batch_size,
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
-             "--speed-input": args.speed_input or None}
+             "--speed-input": args.speed_input}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -368,8 +541,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     model, tc = run.model, run.train
     if args.variant:
         model = with_variant(model, args.variant)
-    if args.speed_input:
-        model = dataclasses.replace(model, speed_input=True)
+    if args.speed_input is not None:
+        model = dataclasses.replace(model, speed_input=args.speed_input)
     if args.epochs is not None:
         tc = tc.with_epochs(args.epochs)
     for flag, value, field, ok in (("--batch-size", args.batch_size, "batch_size", 2),

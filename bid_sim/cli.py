@@ -90,7 +90,7 @@ def _record(args: argparse.Namespace) -> int:
     out = args.out or f"data/town{args.town}" if args.town.isdigit() else f"data/{Path(args.town).name}"
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
-                     progress=not args.json)
+                     progress=not args.json, perturb=args.perturb, ray_address=args.ray)
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
     return 2 if summary["failed"] else 0
 
@@ -111,6 +111,16 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tables(args: argparse.Namespace) -> int:
+    from bid_sim.tables import tables
+
+    text = tables(args.results)
+    if args.out:
+        Path(args.out).write_text(text)
+    print(text)
+    return 0
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from bid_sim.evaluate import compare, evaluate
     from bid_sim.weather import parse_weathers
@@ -123,7 +133,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
-                       video=args.video, progress=not args.json, max_steps=args.max_steps)
+                       video=args.video, progress=not args.json, max_steps=args.max_steps,
+                       ray_address=args.ray)
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
@@ -156,6 +167,15 @@ def _bench(args: argparse.Namespace) -> int:
               + ", ".join(f"{k} {v}" for k, v in st.items())
               + f"; 700 vs 70 vehicles in town: x{result['render_cost_ratio_700_vs_70']} (target <= 1.3)")
     return 0
+
+
+def _add_ray_argument(p: argparse.ArgumentParser, files: str) -> None:
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                   help="run the episodes as tasks on a Ray cluster instead of --workers processes: "
+                   "ADDRESS is HOST:6379 (on a node of the cluster), ray://HOST:10001 (Ray Client) "
+                   "or auto; --ray alone uses $RAY_ADDRESS, else the cluster last started on this "
+                   f"machine, else a new local Ray instance. {files} must be on a filesystem every "
+                   "node sees. Results equal a local run's. Needs pip install 'bid-sim[cluster]'")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -212,7 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="episodes in parallel (processes)")
     rec.add_argument("--max-steps", type=int, default=900, help="steps per episode at most (0.1 s each)")
     rec.add_argument("--agent", default="expert")
+    rec.add_argument("--perturb", type=float, default=0.0,
+                     help="share of driving time with steering noise; labels stay the expert's (recovery data)")
     rec.add_argument("--out", default=None, help="folder (default data/townNN)")
+    _add_ray_argument(rec, "--out")
     rec.add_argument("--json", action="store_true")
     rec.set_defaults(func=_record)
 
@@ -237,12 +260,19 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")
-    ev.add_argument("--video", action="store_true", help="write each episode's MP4 with overlays")
+    ev.add_argument("--video", nargs="?", type=int, const=True, default=False, metavar="N",
+                    help="write each episode's MP4 with overlays (or only the first N episodes')")
     ev.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke runs)")
     ev.add_argument("--out", default=None, help="results folder (default results/TOWN_AGENT_DENSITY)")
+    _add_ray_argument(ev, "With --record or --video, --out")
     ev.add_argument("--compare", nargs="+", default=None, metavar="RESULTS", help="print results folders side by side")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=_evaluate)
+
+    tb = sub.add_parser("tables", help="the result tables of many `bid evaluate` runs, next to the paper's")
+    tb.add_argument("results", nargs="?", default="results", help="folder holding results folders (default results)")
+    tb.add_argument("--out", default=None, help="write the Markdown here too (e.g. results/tables.md)")
+    tb.set_defaults(func=_tables)
 
     b = sub.add_parser("bench", help="benchmarks: 'render' (frames/s per core, stage costs), "
                        "'record' (end-to-end recording frames/s per core)")

@@ -154,7 +154,9 @@ def run_episode(
                               snap.ego.command, ego.speed_mps, snap)
             control = agent.act(obs)
             if recorder is not None:
-                recorder.write(snap, frame, control)
+                # A wrapper that perturbs what the car executes (bid_sim.perturb) gives the label.
+                label = getattr(agent, "label", None)
+                recorder.write(snap, frame, control if label is None else label)
                 if hasattr(recorder, "note"):
                     for inf in monitor.infractions[noted:]:
                         recorder.note(inf)

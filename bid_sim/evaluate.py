@@ -135,11 +135,14 @@ def _renderer(town, weather: str, seed: int):
     return cache[key]
 
 
-def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: bool, max_steps: int | None = None) -> dict:
-    """One episode in this worker; returns its line for episodes.jsonl."""
+def run_eval_episode(ep: EvalEpisode, out: str, record: bool, video: frozenset[str] | bool,
+                     max_steps: int | None = None) -> dict:
+    """One episode in this worker; returns its line for episodes.jsonl.
+    video: True for every episode, or the keys of the episodes to film."""
     from bid_sim.episode import run_episode
 
     agent, spec = _STATE["agent"], _STATE["spec"]
+    video = video is True or (bool(video) and ep.key in video)
     town = resolve_town(ep.town)
     camera = uses_camera(spec, agent) or record or video
     renderer = _renderer(town, ep.weather, ep.seed) if camera else None
@@ -198,12 +201,24 @@ class _Tee:
 
 def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int, agent: str,
              out: str | os.PathLike, checkpoint: str | None = None, workers: int = 1,
-             routes: list[int] | None = None, record: bool = False, video: bool = False,
-             progress: bool = True, options: dict | None = None, max_steps: int | None = None) -> dict:
+             routes: list[int] | None = None, record: bool = False, video: bool | int = False,
+             progress: bool = True, options: dict | None = None, max_steps: int | None = None,
+             ray_address: str | None = None) -> dict:
     """Runs the plan's unfinished episodes, appending to episodes.jsonl; writes the summary.
-    max_steps cuts episodes short (a smoke run: they end as timeouts)."""
+    video: True films every episode, a number N the plan's first N.
+    max_steps cuts episodes short (a smoke run: they end as timeouts).
+    ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
+    processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
+    if ray_address is not None:
+        from bid_sim.cluster import require_ray
+
+        require_ray()  # before any work
     plan = plan_eval(town, densities, weathers, seeds, routes)
+    if video is not True and video is not False:
+        if video < 0:
+            raise BidError(f"--video takes a number of episodes to film (>= 0), got {video}")
+        video = frozenset(ep.key for ep in plan[:video])
     if checkpoint is not None and not Path(checkpoint).exists():
         raise BidError(f"checkpoint {checkpoint} does not exist; give a run's best.pt or last.pt")
     load_agent(agent, checkpoint, options)  # fail here, once, before any worker starts
@@ -243,9 +258,18 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
         bar.set_postfix(steps_per_s=f"{steps / max(time.perf_counter() - t0, 1e-9):.0f}")
 
     try:
-        run_parallel(partial(run_eval_episode, out=str(out), record=record, video=video, max_steps=max_steps),
-                     todo, workers, lambda ep, line: finished(line), initializer=_init_worker,
-                     initargs=(agent, checkpoint, options))
+        if ray_address is None:
+            run_parallel(partial(run_eval_episode, out=str(out), record=record, video=video, max_steps=max_steps),
+                         todo, workers, lambda ep, line: finished(line), initializer=_init_worker,
+                         initargs=(agent, checkpoint, options))
+        else:
+            from bid_sim.cluster import run_ray
+
+            run_ray(partial(run_eval_episode, out=str(out.resolve()), record=record, video=video,
+                            max_steps=max_steps),
+                    todo, ray_address, lambda ep, line: finished(line), initializer=_init_worker,
+                    initargs=(agent, str(Path(checkpoint).resolve()) if checkpoint else None, options),
+                    shared=out if record or video else None)  # only files need a shared --out
     finally:
         bar.close()
     ordered = [done[ep.key] for ep in plan]

@@ -22,6 +22,7 @@ from bid_sim import __version__
 from bid_sim.agents import make_agent
 from bid_sim.errors import BidError
 from bid_sim.parallel import run_parallel
+from bid_sim.perturb import Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path
 from bid_sim.routes import RouteSpec, generate_routes
 from bid_sim.towns import resolve_town
@@ -42,6 +43,7 @@ class EpisodeSpec:
     seed: int
     agent: str = "expert"
     max_steps: int | None = None
+    perturb: float = 0.0  # share of driving time with steering noise (bid_sim.perturb)
 
     @property
     def name(self) -> str:
@@ -49,7 +51,8 @@ class EpisodeSpec:
 
 
 def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
-                  seed: int, agent: str = "expert", max_steps: int | None = None) -> list[EpisodeSpec]:
+                  seed: int, agent: str = "expert", max_steps: int | None = None,
+                  perturb: float = 0.0) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -66,7 +69,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
         raise BidError(f"{t.name} yields only {len(routes)} random routes of >= 150 m; record fewer episodes")
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
-                        seed * 100_000 + i, agent, max_steps) for i in range(episodes)]
+                        seed * 100_000 + i, agent, max_steps, perturb) for i in range(episodes)]
 
 
 def record_episode(spec: EpisodeSpec, out: Path) -> dict:
@@ -86,11 +89,14 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
              f"{spec.route.goal_edge}@{spec.route.goal_pos_m}", "episode": str(spec.index),
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
-             "step_s": "0.1", "software": f"bid-sim {__version__}"}
+             "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}
+    agent = make_agent(spec.agent)
+    if spec.perturb:
+        agent = Perturbed(agent, spec.perturb)
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
-        result = run_episode(town, spec.route, spec.weather, spec.density, spec.seed, make_agent(spec.agent),
+        result = run_episode(town, spec.route, spec.weather, spec.density, spec.seed, agent,
                              recorder=writer, renderer=renderer, max_steps=spec.max_steps)
     except BaseException:
         writer.abort()
@@ -103,9 +109,15 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
 
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
-           progress: bool = True) -> dict:
-    """Records the plan's unfinished episodes into `out`; returns a summary."""
+           progress: bool = True, perturb: float = 0.0, ray_address: str | None = None) -> dict:
+    """Records the plan's unfinished episodes into `out`; returns a summary.
+    ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
+    processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
+    if ray_address is not None:
+        from bid_sim.cluster import require_ray
+
+        require_ray()  # before any work
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / f".write-test-{os.getpid()}"
@@ -115,7 +127,9 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"cannot write to {out} ({e.strerror}); pick a writable --out folder") from e
     if workers < 1:
         raise BidError(f"--workers must be >= 1, got {workers}")
-    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps)
+    if not 0.0 <= perturb < 1.0:
+        raise BidError(f"--perturb must be a share of driving time in [0, 1), got {perturb}")
+    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb)
     todo = [s for s in specs if not (out / f"{s.name}.mcap").exists()]
     for s in todo:
         partial_path(out / f"{s.name}.mcap").unlink(missing_ok=True)  # restarted from scratch
@@ -132,8 +146,15 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         bar.set_postfix(frames=frames, fps=f"{frames / max(time.perf_counter() - t0, 1e-9):.0f}")
 
     try:
-        run_parallel(partial(record_episode, out=out), todo, workers, lambda spec, summary: finished(summary),
-                     on_error=lambda spec, e: failed.append((spec.name, _reason(e))))
+        if ray_address is None:
+            run_parallel(partial(record_episode, out=out), todo, workers, lambda spec, summary: finished(summary),
+                         on_error=lambda spec, e: failed.append((spec.name, _reason(e))))
+        else:
+            from bid_sim.cluster import run_ray
+
+            run_ray(partial(record_episode, out=out.resolve()), todo, ray_address,
+                    lambda spec, summary: finished(summary),
+                    on_error=lambda spec, e: failed.append((spec.name, _reason(e))), shared=out)
     finally:
         bar.close()
     wall = time.perf_counter() - t0

@@ -1,6 +1,8 @@
 """The BID agent in the closed loop: a real (tiny, briefly trained) checkpoint drives the ego
 through SUMO from rendered frames; loading by name; bad checkpoints."""
 
+import json
+
 import pytest
 from render_scenes import street_scene
 
@@ -84,3 +86,18 @@ def test_lesion_study_writes_table_and_chart(checkpoint, tmp_path, capsys):
     assert (tmp_path / "lesion.png").stat().st_size > 1000
     assert main(["lesion", "--checkpoint", str(checkpoint), "--areas", "V1", "--out", str(tmp_path / "x")]) == 2
     assert "cannot lesion 'V1'" in capsys.readouterr().err
+
+
+def test_exported_checkpoint_drives_the_same_and_is_smaller(checkpoint, town02, tmp_path, capsys):
+    shipped = tmp_path / "bid_tiny.pt"
+    assert main(["export", str(checkpoint.parent), "--which", "last.pt", "--out", str(shipped),
+                 "--recipe", "bid train --preset tiny --synthetic"]) == 0
+    assert "bid_tiny.pt" in capsys.readouterr().out
+    assert shipped.stat().st_size < checkpoint.stat().st_size  # no optimiser state
+    card = json.loads(shipped.with_suffix(".json").read_text())
+    assert card["recipe"] == "bid train --preset tiny --synthetic" and card["config"]["model"]["preset"] == "tiny"
+    renderer = Renderer(load_town_map(town02), weather="WetSunset")
+    a, b = Spy(checkpoint), Spy(shipped)
+    for agent in (a, b):
+        run_episode(town02, 1, "WetSunset", "none", 0, agent, renderer=renderer, max_steps=4)
+    assert a.controls == b.controls

@@ -49,3 +49,50 @@ def test_empty_or_missing_folder(tmp_path):
         open_recordings(tmp_path, (48, 144), 0.5, 0)
     with pytest.raises(BidError, match="does not exist"):
         open_recordings(tmp_path / "nope", (48, 144), 0.5, 0)
+
+
+def _fake_index(speed, accel, episode):
+    import numpy as np
+
+    from bid_model.recordings import _Index
+
+    n = len(speed)
+    episode = np.asarray(episode)
+    step = np.concatenate([np.arange((episode == e).sum()) for e in np.unique(episode)])
+    return _Index([], [], episode, step, np.arange(n), np.full(n, 4), np.asarray(speed, np.float32),
+                  np.zeros(n, np.float32), np.asarray(accel, np.float32), None)
+
+
+def test_balance_thins_standing_keeps_the_lead_up_to_a_start_and_repeats_starts():
+    import numpy as np
+
+    from bid_model.recordings import GO_LOOKAHEAD, balance_rows
+
+    # Episode 0: 40 standing (braking) frames, then 5 moving off, then 15 cruising.
+    # Episode 1: 30 standing frames to its end (never starts).
+    speed = [0.0] * 40 + [0.5, 1.0, 1.5, 1.8, 1.9] + [8.0] * 15 + [0.0] * 30
+    accel = [-0.1] * 40 + [1.0] * 5 + [0.0] * 15 + [-0.1] * 30
+    episode = [0] * 60 + [1] * 30
+    ix = _fake_index(speed, accel, episode)
+    rows, still = balance_rows(ix, np.arange(90), stop_keep=0.25, start_repeat=3)
+    assert list(rows) == sorted(rows)
+    counts = np.bincount(rows, minlength=90)
+    assert (counts[40:45] == 3).all() and (counts[45:60] == 1).all()  # starts ×3, cruising once
+    # Of each start's three rows, the two repeats are shown standing still.
+    assert list(still[rows == 41]) == [False, True, True] and still.sum() == 10
+    assert (counts[40 - GO_LOOKAHEAD:40] == 1).all()  # the lead-up to the start is all kept
+    assert list(np.flatnonzero(counts[:40 - GO_LOOKAHEAD])) == list(range(0, 40 - GO_LOOKAHEAD, 4))
+    assert list(np.flatnonzero(counts[60:])) == list(range(0, 30, 4))  # no lead-up across episodes
+    same, none_still = balance_rows(ix, np.arange(90), 1.0, 1)
+    assert list(same) == list(range(90)) and not none_still.any()  # off: unchanged
+    with pytest.raises(BidError):
+        balance_rows(ix, np.arange(90), 0.0, 1)
+
+
+def test_repeated_starts_are_shown_standing_still(recorded):
+    train, _, desc = open_recordings(recorded, (48, 144), 0.5, 0, stop_keep=0.5, start_repeat=2)
+    assert desc["train_shown_still"] == train.still.sum() > 0
+    i = next(i for i in range(len(train)) if train.still[i] and train.index.speed[train.rows[i]] > 0)
+    s, moving = train[i], train[i - 1]  # the same frame, first as recorded
+    assert train.rows[i] == train.rows[i - 1] and s["speed_mps"] == 0.0 < moving["speed_mps"]
+    assert torch.equal(s["prev_frame"], s["frame"]) and s["accel"] == moving["accel"] > 0

@@ -86,3 +86,23 @@ def test_missing_checkpoint(tmp_path, capsys):
 def test_named_agents_load():
     assert type(load_agent("lanefollow")).__name__ == "LaneFollower"
     assert type(load_agent("bid_sim.agents:LaneFollower")).__name__ == "LaneFollower"
+
+
+def test_tables_lay_runs_out_like_the_paper(serial, tmp_path, capsys):
+    out, summary = serial
+    md = tmp_path / "tables.md"
+    assert main(["tables", str(out.parent), "--out", str(md)]) == 0
+    text = md.read_text()
+    assert text in capsys.readouterr().out
+    row = next(ln for ln in text.splitlines() if ln.startswith(f"| {out.name} ("))
+    sr = f"{summary['by_density']['none']['SR']:.1f} ± {summary['by_density']['none']['SR_std']:.1f}"
+    assert row.split(" | ")[1] == sr and row.split(" | ")[4] == "—"  # none SR; no normal runs
+    assert "| paper BID (CARLA Town02) | 100 | 100 |" in text
+    assert "| run | town | DS | SR | IP | PA | ABD | IRL | CWO | CWP | CWV |" in text
+    assert main(["tables", str(tmp_path / "empty")]) == 2
+
+
+def test_video_of_the_first_episodes_only(tmp_path):
+    run = {**RUN, "routes": [0, 3], "max_steps": 8}
+    evaluate(out=tmp_path / "v", workers=1, video=1, **run)
+    assert [p.name for p in (tmp_path / "v" / "videos").glob("*.mp4")] == ["none_WetSunset_r00_s0.mp4"]

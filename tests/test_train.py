@@ -7,14 +7,18 @@ import os
 import shutil
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import cv2
+import numpy as np
 import pytest
 import torch
 
 from bid_model.checkpoint import load_checkpoint, load_model
 from bid_model.config import RunConfig, tiny
-from bid_model.train import METRIC_COLUMNS, train
+from bid_model.data import synthetic_split
+from bid_model.recordings import RecordingDataset
+from bid_model.train import METRIC_COLUMNS, EpisodeShardSampler, item_episodes, train
 from bid_sim.cli import main as bid
 from bid_sim.errors import BidError
 
@@ -109,18 +113,72 @@ def test_checkpoint_from_another_preset_is_refused(tmp_path, capsys):
         load_model(tmp_path / "junk.pt")
 
 
+def test_episode_shards_are_whole_episodes_and_their_union_is_the_global_batch():
+    """Process r of 2 trains on whole episodes of its own; batch k of one process with
+    shards=2 is the union of the two processes' batches k; all yield as many batches."""
+    episodes = np.repeat(np.arange(7), [20, 15, 30, 5, 20, 25, 10])
+
+    def batches(rank: int, world: int, epoch: int) -> list[list[int]]:
+        sampler = EpisodeShardSampler(episodes, 16, 2, rank, world, seed=3)
+        sampler.set_epoch(epoch)
+        out = list(sampler)
+        assert len(out) == len(sampler)
+        return out
+
+    for epoch in (0, 1):
+        one, r0, r1 = batches(0, 1, epoch), batches(0, 2, epoch), batches(1, 2, epoch)
+        assert len(one) == len(r0) == len(r1) >= 6
+        assert {len(b) for b in one} == {16} and {len(b) for b in r0 + r1} == {8}
+        assert all(u == a + b for u, a, b in zip(one, r0, r1, strict=True))
+        assert not set(episodes[np.concatenate(r0)]) & set(episodes[np.concatenate(r1)])
+        assert len(set(np.concatenate(one))) == 16 * len(one)  # no item twice
+    assert batches(0, 1, 0) != batches(0, 1, 1)  # another order each epoch, the same on a rerun
+    assert batches(0, 1, 1) == one
+    with pytest.raises(BidError, match="3 data shards cannot be split over 2"):
+        EpisodeShardSampler(episodes, 16, 3, 0, 2)
+    with pytest.raises(BidError, match="7 training episodes cannot be shared by 8"):
+        EpisodeShardSampler(episodes, 16, 8, 0, 8)
+
+
+def test_item_episodes_of_generated_data_and_recordings():
+    train_set, _, _ = synthetic_split(100, (32, 96), 0.2, seed=0)
+    expected = [train_set[i]["episode"] for i in range(len(train_set))]
+    assert item_episodes(train_set).tolist() == expected
+    index = SimpleNamespace(episode=np.array([0, 0, 1, 1, 1, 2]))
+    rows = np.array([5, 2, 2, 0])  # a RecordingDataset's rows may repeat (balance_rows)
+    assert item_episodes(RecordingDataset(index, rows, (32, 96), None)).tolist() == [2, 1, 1, 0]
+
+
 @pytest.mark.skipif(shutil.which("torchrun", path=os.path.dirname(sys.executable)) is None,
                     reason="torchrun not installed")
-def test_torchrun_ddp_on_two_cpu_processes(tmp_path):
+def test_torchrun_ddp_equals_one_process_with_the_same_global_batch(tmp_path):
+    """Two Gloo processes on whole episodes of their own end with the weights, batch norm
+    statistics and areas' mean activations of one process that sees the same global
+    batches (shards=2): 2 epochs of 5 steps of 2 × 8 samples.
+
+    At the paper's lr: at the tiny preset's 10× larger one, Adam turns float rounding
+    (sums in another order) in near-zero gradients into whole steps, and even two
+    single-process runs that differ only in how batch norm sums drift apart by ~1e-3.
+    """
     torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
-    out = tmp_path / "ddp"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(
         [torchrun, "--standalone", "--nproc-per-node=2", "-m", "bid_model.train", "--preset",
-         "tiny", "--synthetic", "--samples", "40", "--epochs", "1", "--device", "cpu",
-         "--out", str(out), "--quiet"],
+         "tiny", "--synthetic", "--samples", "100", "--epochs", "2", "--lr", "2e-4",
+         "--device", "cpu", "--out", str(tmp_path / "ddp"), "--quiet"],
         capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert json.loads((out / "config.json").read_text())["world_size"] == 2
-    rows = list(csv.DictReader((out / "metrics.csv").open()))
-    assert len(rows) == 1
+    assert json.loads((tmp_path / "ddp" / "config.json").read_text())["world_size"] == 2
+    run = tiny()
+    run = RunConfig(run.model, dataclasses.replace(run.train.with_epochs(2), lr=2e-4,
+                                                   synthetic_samples=100))
+    single = train(tmp_path / "one", run, synthetic=True, device="cpu", shards=2, progress=False)
+    ddp = load_checkpoint(tmp_path / "ddp" / "last.pt")
+    assert ddp["epoch"] == 2 and ddp["config"] == run.to_dict()
+    for a, b in zip(ddp["history"], single, strict=True):
+        for key in ("train_loss", "val_loss", "val_mae_steer", "val_mae_accel"):
+            assert a[key] == pytest.approx(b[key], rel=1e-4), (a["epoch"], key)
+    one = load_checkpoint(tmp_path / "one" / "last.pt")["model"]
+    assert ddp["model"].keys() == one.keys()
+    for key, w in one.items():
+        torch.testing.assert_close(ddp["model"][key], w, rtol=1e-4, atol=1e-4, msg=key)
