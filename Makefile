@@ -16,11 +16,13 @@ PERTURB ?= 0.2
 RECORD_TOWN = $(if $(filter command line environment,$(origin TOWN)),$(TOWN),01)
 
 AGENT ?= bid
-CHECKPOINT ?= runs/small/best.pt
+# The BID shipped in the repository (`small` preset, trained on CPU; its card is beside it).
+SHIPPED := checkpoints/bid_small.pt
+CHECKPOINT ?= $(SHIPPED)
 WEATHERS ?= test
 SEEDS ?= 3
 
-.PHONY: demo test bench towns clean lint record evaluate train
+.PHONY: demo test bench towns clean lint record evaluate train reproduce
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -30,9 +32,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[dev,cluster]'
 	touch $(STAMP)
 
+# The shipped BID drives six Town02 routes it has never seen, at normal density, in a test
+# weather; one episode is filmed with the Grad-CAM overlay.
 demo: $(STAMP)
-	$(BID) towns
-	$(BID) episode --town $(TOWN) --density $(DENSITY) --route 0 --seed 0 --agent expert
+	$(BID) evaluate --town 02 --density normal --weathers WetSunset --seeds 1 --routes 0,1,2,3,4,5 \
+		--agent bid --checkpoint $(SHIPPED) --workers $(WORKERS) --video 1 --out results/demo
+	@echo "video with Grad-CAM: $$(ls results/demo/videos/*.mp4)"
 
 test: $(STAMP)
 	$(PY) -m pytest tests
@@ -58,6 +63,21 @@ evaluate: $(STAMP)
 record: $(STAMP)
 	$(BID) record --town $(RECORD_TOWN) --episodes $(EPISODES) --perturb $(PERTURB) --workers $(WORKERS) \
 		--out data/town$(RECORD_TOWN)
+
+# Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
+# training, the Town02 NoCrash for the expert and the new BID, and the result tables.
+# The shipped checkpoint is left alone: copy runs/reproduce/best.pt over it with
+# `bid export` only if it drives better.
+reproduce: $(STAMP)
+	$(MAKE) record TOWN=01
+	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
+	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
+		--workers $(WORKERS) --out results/reproduce/town02_expert
+	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
+		--checkpoint runs/reproduce/best.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce/best.pt --town 02 --density normal \
+		--out results/reproduce/lesion_town02_normal
+	$(BID) tables results/reproduce --out results/reproduce/tables.md
 
 towns: $(STAMP)
 	$(BID) towns

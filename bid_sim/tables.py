@@ -45,18 +45,30 @@ def _label(name: str, summary: dict) -> str:
     return f"{name} ({cfg['agent']}, {len(cfg['weathers'])} weathers × {cfg['seeds']} seeds)"
 
 
+def _same_setup(runs: dict[str, dict], town: str) -> dict[tuple, list[str]]:
+    """Runs of `town` grouped by agent, checkpoint, weathers and seeds (one per density, say)."""
+    groups: dict[tuple, list[str]] = {}
+    for name, s in runs.items():
+        cfg = s["config"]
+        if cfg["town"] == town:
+            key = (cfg["agent"], cfg.get("checkpoint"), tuple(cfg["weathers"]), cfg["seeds"])
+            groups.setdefault(key, []).append(name)
+    return groups
+
+
 def nocrash_table(runs: dict[str, dict], town: str) -> str:
-    """SR, SSR and TL per density, one row per run of `town`."""
+    """SR, SSR and TL per density, one row per setup (runs of the same agent, checkpoint,
+    weathers and seeds share a row, whichever densities each ran)."""
     lines = ["| run | " + " | ".join(f"{d} SR | {d} SSR | {d} TL" for d in DENSITY_ORDER) + " | episodes |",
              "|---|" + "---|" * (3 * len(DENSITY_ORDER) + 1)]
-    for name, s in runs.items():
-        if s["config"]["town"] != town:
-            continue
+    for names in _same_setup(runs, town).values():
         cells = []
         for d in DENSITY_ORDER:
-            st = s["by_density"].get(d)
+            st = next((runs[n]["by_density"][d] for n in names if d in runs[n]["by_density"]), None)
             cells += [m.cell(st, k) for k in ("SR", "SSR", "TL")] if st else ["—"] * 3
-        lines.append(f"| {_label(name, s)} | " + " | ".join(cells) + f" | {s['all']['episodes']} |")
+        episodes = sum(runs[n]["all"]["episodes"] for n in names)
+        label = _label(" + ".join(names), runs[names[0]])
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {episodes} |")
     if town == "Town02":
         paper = [f"{PAPER_NOCRASH[d]['SR']} | {PAPER_NOCRASH[d]['SSR']} | —" for d in DENSITY_ORDER]
         lines.append("| paper BID (CARLA Town02) | " + " | ".join(paper) + " | — |")

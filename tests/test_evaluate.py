@@ -91,7 +91,7 @@ def test_named_agents_load():
 def test_tables_lay_runs_out_like_the_paper(serial, tmp_path, capsys):
     out, summary = serial
     md = tmp_path / "tables.md"
-    assert main(["tables", str(out.parent), "--out", str(md)]) == 0
+    assert main(["tables", str(out), "--out", str(md)]) == 0  # the run folder itself
     text = md.read_text()
     assert text in capsys.readouterr().out
     row = next(ln for ln in text.splitlines() if ln.startswith(f"| {out.name} ("))
