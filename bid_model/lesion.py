@@ -2,8 +2,8 @@
 off in turn (V1 excluded: without it nothing is seen), against the intact model.
 
 Each run is an ordinary `bid evaluate` results folder under OUT (intact/, no_V2/, ...), so
-an interrupted study resumes; OUT/lesion.json, lesion.md and lesion.png hold SR, TL, CV and
-CP per lesioned area.
+an interrupted study resumes; OUT/lesion.json, lesion.md and lesion.png hold SR, RC, TL, CV
+and CP per lesioned area (RC tells areas apart while a model completes few routes).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from bid_model.checkpoint import load_model
 from bid_sim.errors import BidError
 from bid_sim.evaluate import evaluate
 
-METRICS = ("SR", "TL", "CV", "CP")
+METRICS = ("SR", "RC", "TL", "CV", "CP")
 
 
 def lesion_study(checkpoint: str | Path, town: str, density: str, weathers: tuple[str, ...], seeds: int,
@@ -43,9 +43,9 @@ def lesion_study(checkpoint: str | Path, town: str, density: str, weathers: tupl
 
 def markdown(table: dict, mode: str) -> str:
     lines = [f"Lesions ({mode}): the closed-loop benchmark with one area switched off", "",
-             "| lesioned | SR | TL | CV | CP | DS | episodes |", "|---|---|---|---|---|---|---|"]
+             "| lesioned | SR | RC | TL | CV | CP | DS | episodes |", "|---|---|---|---|---|---|---|---|"]
     for name, r in table.items():
-        lines.append(f"| {name} | {r['SR']:.1f} ± {r['SR_std']:.1f} | {r['TL']} | {r['CV']} | {r['CP']} | "
+        lines.append(f"| {name} | {r['SR']:.1f} ± {r['SR_std']:.1f} | {r['RC']:.1f} | {r['TL']} | {r['CV']} | {r['CP']} | "
                      f"{r['DS']:.1f} | {r['episodes']} |")
     return "\n".join(lines) + "\n"
 

@@ -82,7 +82,7 @@ def test_lesion_study_writes_table_and_chart(checkpoint, tmp_path, capsys):
                  "--weathers", "WetSunset", "--routes", "3", "--areas", "IT,OFC", "--workers", "1", "--max-steps", "30",
                  "--out", str(tmp_path)]) == 0
     md = (tmp_path / "lesion.md").read_text()
-    assert "| intact |" in md and "| IT |" in md and "| OFC |" in md
+    assert "| intact |" in md and "| IT |" in md and "| OFC |" in md and "| SR | RC | TL |" in md
     assert (tmp_path / "lesion.png").stat().st_size > 1000
     assert main(["lesion", "--checkpoint", str(checkpoint), "--areas", "V1", "--out", str(tmp_path / "x")]) == 2
     assert "cannot lesion 'V1'" in capsys.readouterr().err
