@@ -27,7 +27,10 @@ def _inputs(model: BID, batch: int, device: torch.device) -> tuple[torch.Tensor,
     frame = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)
     prev = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)
     command = command_one_hot(torch.randint(1, 7, (batch,), generator=g))
-    return frame.to(device), prev.to(device), command.to(device)
+    x = (frame, prev, command)
+    if model.config.speed_input:  # the small preset sees the measured speed
+        x += (torch.rand(batch, generator=g) * 10.0,)
+    return tuple(t.to(device) for t in x)
 
 
 def train_samples_per_s(name: str, batch: int, iters: int, device: torch.device) -> float:
