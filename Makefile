@@ -22,7 +22,12 @@ CHECKPOINT ?= $(SHIPPED)
 WEATHERS ?= test
 SEEDS ?= 3
 
-.PHONY: demo test bench towns clean lint record evaluate train reproduce
+# A DAgger round: which checkpoint drives, and the round's number (its routes' seed).
+STUDENT ?= runs/small/best.pt
+ROUND ?= 1
+DAGGER_RUN ?= small_dagger$(ROUND)
+
+.PHONY: demo test bench towns clean lint record evaluate train dagger reproduce
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -64,18 +69,28 @@ record: $(STAMP)
 	$(BID) record --town $(RECORD_TOWN) --episodes $(EPISODES) --perturb $(PERTURB) --workers $(WORKERS) \
 		--out data/town$(RECORD_TOWN)
 
+# A DAgger round, after `make train`: the BID of STUDENT drives Town01 routes of its own, the
+# expert labels every frame and takes the wheel when the BID strays; then the BID is
+# fine-tuned from STUDENT on everything under data/town01 (demonstrations and DAgger rounds).
+dagger: $(STAMP)
+	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) --workers $(WORKERS) \
+		--out data/town01/dagger$(ROUND)
+	$(BID) train --preset small --data data/town01 --name $(DAGGER_RUN) \
+		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs 3 --lr 1e-4)
+
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
-# training, the Town02 NoCrash for the expert and the new BID, and the result tables.
-# The shipped checkpoint is left alone: copy runs/reproduce/best.pt over it with
-# `bid export` only if it drives better.
+# training, a DAgger round, the Town02 NoCrash for the expert and the new BID, and the
+# result tables. The shipped checkpoint is left alone: copy runs/reproduce_dagger1/best.pt
+# over it with `bid export` only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
+	$(MAKE) dagger STUDENT=runs/reproduce/best.pt ROUND=1 DAGGER_RUN=reproduce_dagger1
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce/best.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce/best.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_dagger1/best.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_dagger1/best.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 

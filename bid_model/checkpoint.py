@@ -65,7 +65,7 @@ def load_model(path: str | Path, preset: str | None = None,
     return model.to(device).eval(), config
 
 
-SHIPPED_KEYS = ("config", "model", "epoch", "history", "best_val_loss", "git_hash", "version")
+SHIPPED_KEYS = ("config", "model", "epoch", "history", "best_val_loss", "git_hash", "version", "init")
 
 
 def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
@@ -83,7 +83,7 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
     best = min(payload.get("history") or [{}], key=lambda r: r.get("val_loss", math.inf))
     card = {"checkpoint": out.name, "from": str(run / which), "epoch": payload.get("epoch"),
             "git_hash": payload.get("git_hash"), "version": payload.get("version"), "recipe": recipe,
-            "config": payload["config"], "best_epoch": best, "dataset": dataset}
+            "config": payload["config"], "best_epoch": best, "dataset": dataset, "init": payload.get("init")}
     out.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(out, payload)
     out.with_suffix(".json").write_text(json.dumps(card, indent=1, default=str) + "\n")

@@ -30,6 +30,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")
+    p.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="start from this checkpoint's weights (fine-tuning; same preset and flags)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--workers", type=int, default=None, help="data loader processes")
     p.add_argument("--threads", type=int, default=None,

@@ -150,10 +150,13 @@ class RecordingDataset(Dataset):
     """Samples (bid_model.data contract) of chosen rows of an index."""
 
     def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None,
-                 still: np.ndarray | None = None):
+                 still: np.ndarray | None = None, motionless: np.ndarray | None = None):
         self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
         # Rows shown standing still: frame t−1 = frame t and speed 0 (see balance_rows).
         self.still = np.zeros(len(self.rows), dtype=bool) if still is None else np.asarray(still, dtype=bool)
+        # Rows shown without motion, at their speed: frame t−1 = frame t (see motion_dropout).
+        self.motionless = (np.zeros(len(self.rows), dtype=bool) if motionless is None
+                           else np.asarray(motionless, dtype=bool))
         self.cache = cache
         self._mm: np.ndarray | None = None  # opened lazily: once per DataLoader worker
 
@@ -175,7 +178,8 @@ class RecordingDataset(Dataset):
         j = int(self.rows[i])
         frame = self._frame(j)
         still = bool(self.still[i])
-        return {"frame": frame, "prev_frame": frame if still else self._frame(int(ix.prev[j])),
+        same = still or bool(self.motionless[i])
+        return {"frame": frame, "prev_frame": frame if same else self._frame(int(ix.prev[j])),
                 "command": int(ix.command[j]), "speed_mps": 0.0 if still else float(ix.speed[j]),
                 "steer": float(ix.steer[j]),
                 "accel": float(ix.accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
@@ -189,6 +193,7 @@ class RecordingDataset(Dataset):
 STOPPED_MPS = 0.1  # below this the ego stands
 START_MPS = 2.0  # below this, with throttle, it is moving off
 GO_LOOKAHEAD = 10  # standing frames this close before a start are kept: the cue to go is in them
+STANDING_STEER_MAX = 0.5  # standing frames that steer harder say nothing (see balance_rows)
 
 
 def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
@@ -204,7 +209,10 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     round(1/stop_keep)-th standing, braking frame (by step number, deterministic) and all
     of those within GO_LOOKAHEAD steps before a start; repeat each moving-off frame (slow,
     throttle) `start_repeat` times, the repeats shown standing still (frame t−1 = frame t,
-    speed 0) with the expert's throttle as the label. Returns (rows, still), sorted.
+    speed 0) with the expert's throttle as the label. Standing frames that steer by more than
+    STANDING_STEER_MAX are dropped: at a standstill the wheel turns nothing, and such labels
+    come from a car stranded off its route (the expert at full lock, braking). Returns
+    (rows, still), sorted.
     """
     if not 0.0 < stop_keep <= 1.0 or start_repeat < 1:
         raise BidError(f"stop_keep must be in (0, 1] and start_repeat >= 1, got {stop_keep}, {start_repeat}")
@@ -219,6 +227,7 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
         soon |= ahead & same
     every = max(1, round(1.0 / stop_keep))
     keep = ~standing[rows] | soon[rows] | (index.step[rows] % every == 0)
+    keep &= ~((index.speed[rows] < STOPPED_MPS) & (np.abs(index.steer[rows]) > STANDING_STEER_MAX))
     kept = rows[keep]
     repeats = np.repeat(kept[starting[kept]], start_repeat - 1)
     all_rows = np.r_[kept, repeats]
@@ -227,13 +236,29 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     return all_rows[order], still[order]
 
 
+def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
+    """Which of n training rows to show without motion (frame t−1 = frame t): a fixed random
+    `share` of them, drawn from `seed`.
+
+    Steering in the demonstrations goes on for many frames, and the car's own turning shows
+    in the motion between frame t−1 and t. A network with both frames learns to copy that
+    motion ("keep turning while turning") rather than read the road, and in closed loop,
+    not yet turning, it never starts to (copycat / causal confusion, de Haan et al. 2019).
+    Rows without motion must be steered from the road itself.
+    """
+    if not 0.0 <= share < 1.0:
+        raise BidError(f"motion dropout must be a share in [0, 1), got {share}")
+    return np.random.default_rng((seed, 0x3D0)).random(n) < share
+
+
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
-                    cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1
-                    ) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
+                    motion_drop: float = 0.0) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
-    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat)`; the
-    validation set keeps every frame, so its errors stay those of real driving.
+    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat)` and a share
+    `motion_drop` of them shown without motion (`motion_dropout`); the validation set keeps
+    every frame as recorded, so its errors stay those of real driving.
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -253,7 +278,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     is_val = np.isin(index.episode, val_eps)
     train_rows = np.flatnonzero(~is_val)
     balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat)
-    train = RecordingDataset(index, balanced, frame_hw, cache_path, still)
+    train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
+                             motion_dropout(len(balanced), motion_drop, seed))
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
@@ -262,7 +288,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "folder": str(folder), "recordings": len(files), "skipped_partial": [str(p) for p in partial],
         "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
         "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
-        "train_shown_still": int(still.sum()),
+        "train_shown_still": int(still.sum()), "motion_drop": motion_drop,
+        "train_shown_motionless": int(train.motionless.sum()),
         "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),
         "train_episodes": len(train_eps), "val_episodes": [files[e].name for e in val_eps],
         "towns": dict(towns), "weathers": dict(weathers), "densities": dict(densities),

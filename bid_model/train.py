@@ -107,7 +107,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
         raise BidError("this version has no recording reader (bid_model/recordings.py); "
                        "train on --synthetic") from e
     train_set, val_set, description = open_recordings(folder, hw, tc.val_fraction, tc.seed,
-                                                      stop_keep=tc.stop_keep, start_repeat=tc.start_repeat)
+                                                      stop_keep=tc.stop_keep, start_repeat=tc.start_repeat,
+                                                      motion_drop=tc.motion_drop)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -392,8 +393,12 @@ def _plot(history: list[dict[str, Any]], val: dict[str, Any] | None, out: Path) 
 def train(out: Path, config: RunConfig | None = None, *, data: Path | None = None,
           synthetic: bool = False, resume: bool = False, expect_preset: str | None = None,
           device: str = "auto", workers: int | None = None, stop_after: int | None = None,
-          progress: bool = True, shards: int | None = None) -> list[dict[str, Any]]:
+          progress: bool = True, shards: int | None = None, init: Path | None = None
+          ) -> list[dict[str, Any]]:
     """Train into run folder `out`; returns the metrics rows of all epochs so far.
+
+    `init`: start from the weights of that checkpoint (same model config) instead of random
+    ones: fine-tuning, e.g. on DAgger data (`bid record --dagger`). The optimiser starts anew.
 
     With `resume`, continue from out/last.pt with its saved config (`config`, if given, must
     equal it; `expect_preset` must match it). `stop_after` ends this call after that many
@@ -427,6 +432,16 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
                        "another --out / --name")
     if config is None:
         raise BidError("no config: pass a preset or --resume an existing run")
+    start_from = None
+    if init is not None:
+        if resume:
+            raise BidError("--init starts a new run from a checkpoint's weights; --resume continues one: pick one")
+        start_from = load_checkpoint(init)
+        theirs = RunConfig.from_dict(start_from["config"]).model
+        if theirs != config.model:
+            diff = [f.name for f in dataclasses.fields(theirs) if getattr(theirs, f.name) != getattr(config.model, f.name)]
+            raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
+                           f"train with its preset and flags, or start from scratch")
     tc = config.train
 
     dist = init_distributed(device)
@@ -447,8 +462,14 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
         start, history, best = ckpt["epoch"], list(ckpt["history"]), ckpt["best_val_loss"]
+    elif start_from is not None:
+        model.load_state_dict(start_from["model"])
 
     meta = {"git_hash": git_hash(), "version": _version(), "torch": str(torch.__version__)}
+    if start_from is not None:
+        meta["init"] = {"path": str(init), "epoch": start_from.get("epoch"), "git_hash": start_from.get("git_hash")}
+    elif ckpt is not None and "init" in ckpt:
+        meta["init"] = ckpt["init"]
     if dist.main:
         out.mkdir(parents=True, exist_ok=True)
         _write_text_atomic(out / "config.json", json.dumps(
@@ -598,7 +619,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads or default_threads(workers))
     history = train(out, config, data=Path(args.data), synthetic=args.synthetic,
                     resume=args.resume, expect_preset=args.preset, device=args.device,
-                    workers=args.workers, progress=not args.quiet)
+                    workers=args.workers, progress=not args.quiet,
+                    init=Path(args.init) if args.init else None)
     if int(os.environ.get("RANK", "0")) == 0:
         if history:
             r = history[-1]

@@ -90,7 +90,8 @@ def _record(args: argparse.Namespace) -> int:
     out = args.out or f"data/town{args.town}" if args.town.isdigit() else f"data/{Path(args.town).name}"
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
-                     progress=not args.json, perturb=args.perturb, ray_address=args.ray)
+                     progress=not args.json, perturb=args.perturb, ray_address=args.ray,
+                     dagger=args.dagger)
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
     return 2 if summary["failed"] else 0
 
@@ -234,6 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--agent", default="expert")
     rec.add_argument("--perturb", type=float, default=0.0,
                      help="share of driving time with steering noise; labels stay the expert's (recovery data)")
+    rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
+                     help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
     rec.add_argument("--out", default=None, help="folder (default data/townNN)")
     _add_ray_argument(rec, "--out")
     rec.add_argument("--json", action="store_true")

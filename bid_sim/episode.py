@@ -48,7 +48,7 @@ class EpisodeResult:
     density: str
     seed: int
     agent: str
-    status: str  # completed | blocked | route_deviation | timeout
+    status: str  # completed | blocked | route_deviation | timeout | gave_up (bid_sim.perturb.Dagger)
     steps: int
     time_s: float
     route_length_m: float
@@ -153,6 +153,9 @@ def run_episode(
             obs = Observation(frame, prev_frame if prev_frame is not None else frame,
                               snap.ego.command, ego.speed_mps, snap)
             control = agent.act(obs)
+            if getattr(agent, "gave_up", False):  # a data-collecting agent ends a dead end
+                status = "gave_up"
+                break
             if recorder is not None:
                 # A wrapper that perturbs what the car executes (bid_sim.perturb) gives the label.
                 label = getattr(agent, "label", None)

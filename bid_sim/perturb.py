@@ -1,4 +1,8 @@
-"""Perturbed demonstrations: the expert drives, noise steers, the expert's answer is the label.
+"""Demonstrations off the expert's own path, labelled by the expert.
+
+`Perturbed`: the expert drives, noise steers, the expert's answer is the label.
+`Dagger`: a learned policy drives, the expert labels every step and takes the wheel when the
+policy strays too far (DAgger, Ross et al. 2011, with an expert gate as in HG-DAgger).
 
 A policy trained only on clean expert driving never sees the car off the lane centre, so
 in closed loop a small error grows (covariate shift). As in conditional imitation
@@ -63,3 +67,78 @@ class Perturbed:
         if self._at == len(self._pulse):
             self._pulse = None
         return Control(float(np.clip(control.steer + offset, -1.0, 1.0)), control.accel)
+
+
+# Dagger's gate: the teacher takes over beyond these, until the car is back near the route.
+TAKEOVER_LATERAL_M = 1.5
+TAKEOVER_HEADING_RAD = 0.35  # 20 degrees
+RELEASE_LATERAL_M = 0.3
+RELEASE_HEADING_RAD = 0.05
+TAKEOVER_MIN_STEPS = 10  # 1 s at least, so that control does not flicker at the gate
+STALL_STEPS = 15  # the student stands while the teacher would go: 1.5 s, then the teacher starts
+GIVE_UP_STEPS = 50  # 5 s standing still off the route: a dead end (say, past a turn, facing a wall)
+GIVE_UP_LATERAL_M = 0.75
+GIVE_UP_HEADING_RAD = 0.17  # 10 degrees
+
+
+class Dagger:
+    """The student drives; `label` is the teacher's control at every step.
+
+    A policy trained on demonstrations visits states the expert never did (the car off the
+    lane centre after a turn, late into a junction) and nothing told it what to do there.
+    Here the student's own mistakes make those states and the teacher (the expert, which
+    reads the snapshot) labels them. For the episode to go on, the teacher takes the wheel
+    when the car is over TAKEOVER_LATERAL_M off the route or TAKEOVER_HEADING_RAD askew, or
+    when the student stands still while the teacher would drive on, and gives it back once
+    the car is near the route again; the teacher also brakes for the student (the executed
+    accel is the lower of the two while the teacher brakes), so red lights and cars ahead do
+    not end an episode in a crash. `student_share` is the share of steps the student drove.
+
+    A forward-only car can strand itself (past a missed turn, nose against a building): the
+    expert then stands with the wheel at full lock, and nothing of that is worth learning.
+    After GIVE_UP_STEPS standing still off the route, `gave_up` is set and the episode ends
+    (run_episode stops on it) rather than record a minute of a stuck car.
+    """
+
+    def __init__(self, student: Agent, teacher: Agent):
+        self.student, self.teacher = student, teacher
+        self.label: Control | None = None
+        self._takeover = 0  # steps of teacher control left (at least)
+        self._stall = self._stuck = 0
+        self._steps = self._student_steps = 0
+        self.gave_up = False
+
+    @property
+    def student_share(self) -> float:
+        return self._student_steps / self._steps if self._steps else 0.0
+
+    def reset(self, info: EpisodeInfo) -> None:
+        self.student.reset(info)
+        self.teacher.reset(info)
+        self.label = None
+        self._takeover = self._stall = self._stuck = 0
+        self._steps = self._student_steps = 0
+        self.gave_up = False
+
+    def act(self, obs: Observation) -> Control:
+        mine = self.student.act(obs)  # every step: the student keeps its previous frame
+        teacher = self.teacher.act(obs)
+        self.label = teacher
+        ego = obs.snapshot.ego
+        lateral, heading = abs(ego.lateral_m), abs(ego.heading_error_rad)
+        stalled = obs.speed_mps < 0.5 and teacher.accel > 0.05 and mine.accel <= 0.05
+        self._stall = self._stall + 1 if stalled else 0
+        off_route = lateral > GIVE_UP_LATERAL_M or heading > GIVE_UP_HEADING_RAD
+        self._stuck = self._stuck + 1 if obs.speed_mps < 0.1 and off_route else 0
+        self.gave_up = self._stuck >= GIVE_UP_STEPS
+        if lateral > TAKEOVER_LATERAL_M or heading > TAKEOVER_HEADING_RAD or self._stall >= STALL_STEPS:
+            self._takeover = max(self._takeover, TAKEOVER_MIN_STEPS)
+            self._stall = 0
+        elif self._takeover and lateral < RELEASE_LATERAL_M and heading < RELEASE_HEADING_RAD:
+            self._takeover -= 1
+        self._steps += 1
+        if self._takeover:
+            return teacher
+        self._student_steps += 1
+        accel = min(mine.accel, teacher.accel) if teacher.accel < 0.0 else mine.accel
+        return Control(mine.steer, accel)

@@ -22,7 +22,7 @@ from bid_sim import __version__
 from bid_sim.agents import make_agent
 from bid_sim.errors import BidError
 from bid_sim.parallel import run_parallel
-from bid_sim.perturb import Perturbed
+from bid_sim.perturb import Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path
 from bid_sim.routes import RouteSpec, generate_routes
 from bid_sim.towns import resolve_town
@@ -44,6 +44,7 @@ class EpisodeSpec:
     agent: str = "expert"
     max_steps: int | None = None
     perturb: float = 0.0  # share of driving time with steering noise (bid_sim.perturb)
+    dagger: str | None = None  # checkpoint of a BID that drives while `agent` labels (bid_sim.perturb.Dagger)
 
     @property
     def name(self) -> str:
@@ -52,7 +53,7 @@ class EpisodeSpec:
 
 def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
                   seed: int, agent: str = "expert", max_steps: int | None = None,
-                  perturb: float = 0.0) -> list[EpisodeSpec]:
+                  perturb: float = 0.0, dagger: str | None = None) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -69,7 +70,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
         raise BidError(f"{t.name} yields only {len(routes)} random routes of >= 150 m; record fewer episodes")
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
-                        seed * 100_000 + i, agent, max_steps, perturb) for i in range(episodes)]
+                        seed * 100_000 + i, agent, max_steps, perturb, dagger) for i in range(episodes)]
 
 
 def record_episode(spec: EpisodeSpec, out: Path) -> dict:
@@ -93,6 +94,11 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     agent = make_agent(spec.agent)
     if spec.perturb:
         agent = Perturbed(agent, spec.perturb)
+    if spec.dagger:
+        from bid_sim.evaluate import load_agent
+
+        facts["dagger"] = Path(spec.dagger).name  # the student that drove; `agent` labelled
+        agent = Dagger(load_agent("bid", spec.dagger), agent)
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
@@ -101,16 +107,22 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     except BaseException:
         writer.abort()
         raise
-    writer.finish({"status": result.status, "steps": result.steps, "metrics": result.metrics,
-                   "infractions": [i.to_dict() for i in result.infractions]})
+    end = {"status": result.status, "steps": result.steps, "metrics": result.metrics,
+           "infractions": [i.to_dict() for i in result.infractions]}
+    if spec.dagger:
+        end["student_share"] = round(agent.student_share, 4)
+    writer.finish(end)
     return {"name": spec.name, "frames": writer.frames, "status": result.status,
-            "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0}
+            "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
+            **({"student_share": end["student_share"]} if spec.dagger else {})}
 
 
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
-           progress: bool = True, perturb: float = 0.0, ray_address: str | None = None) -> dict:
+           progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
+           dagger: str | None = None) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
+    dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger).
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
@@ -129,7 +141,16 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"--workers must be >= 1, got {workers}")
     if not 0.0 <= perturb < 1.0:
         raise BidError(f"--perturb must be a share of driving time in [0, 1), got {perturb}")
-    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb)
+    if dagger is not None:
+        if perturb:
+            raise BidError("--dagger and --perturb do not go together: the student's own errors are the perturbation")
+        if not Path(dagger).is_file():
+            raise BidError(f"--dagger {dagger}: no such checkpoint; give a run's best.pt or checkpoints/bid_small.pt")
+        from bid_sim.evaluate import load_agent
+
+        load_agent("bid", dagger)  # a damaged or foreign checkpoint fails here, once
+        dagger = str(Path(dagger).resolve())
+    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger)
     todo = [s for s in specs if not (out / f"{s.name}.mcap").exists()]
     for s in todo:
         partial_path(out / f"{s.name}.mcap").unlink(missing_ok=True)  # restarted from scratch
@@ -161,7 +182,9 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
     return {"out": str(out), "planned": len(specs), "skipped": len(specs) - len(todo), "recorded": len(done),
             "failed": failed, "frames": frames, "wall_s": round(wall, 1),
             "frames_per_s": round(frames / wall, 1) if wall > 0 else 0.0,
-            "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})}}
+            "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})},
+            **({"student_share": round(sum(d["student_share"] for d in done) / len(done), 3)}
+               if dagger and done else {})}
 
 
 def _reason(e: Exception) -> str:
@@ -174,6 +197,8 @@ def describe(summary: dict) -> str:
              f"{len(summary['failed'])} failed -> {summary['out']}"]
     if summary["statuses"]:
         lines.append("  endings: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items()))
+    if "student_share" in summary:
+        lines.append(f"  the student drove {100 * summary['student_share']:.0f} % of the steps, the expert the rest")
     lines += [f"  failed {name}: {msg}" for name, msg in summary["failed"]]
     return "\n".join(lines)
 

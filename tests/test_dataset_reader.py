@@ -89,6 +89,21 @@ def test_balance_thins_standing_keeps_the_lead_up_to_a_start_and_repeats_starts(
         balance_rows(ix, np.arange(90), 0.0, 1)
 
 
+def test_balance_drops_standing_frames_at_full_lock():
+    import numpy as np
+
+    from bid_model.recordings import balance_rows
+
+    # A car stranded off its route: standing, the expert at full lock; then it drives, steering.
+    speed = [0.0] * 20 + [5.0] * 10
+    accel = [-1.0] * 20 + [0.3] * 10
+    ix = _fake_index(speed, accel, [0] * 30)
+    ix.steer[:] = -1.0
+    ix.steer[5:8] = 0.2  # standing, a little steer: kept
+    rows, _ = balance_rows(ix, np.arange(30), 1.0, 1)
+    assert list(rows) == [5, 6, 7, *range(20, 30)]  # steering while moving is kept
+
+
 def test_repeated_starts_are_shown_standing_still(recorded):
     train, _, desc = open_recordings(recorded, (48, 144), 0.5, 0, stop_keep=0.5, start_repeat=2)
     assert desc["train_shown_still"] == train.still.sum() > 0
@@ -96,3 +111,24 @@ def test_repeated_starts_are_shown_standing_still(recorded):
     s, moving = train[i], train[i - 1]  # the same frame, first as recorded
     assert train.rows[i] == train.rows[i - 1] and s["speed_mps"] == 0.0 < moving["speed_mps"]
     assert torch.equal(s["prev_frame"], s["frame"]) and s["accel"] == moving["accel"] > 0
+
+
+def test_motion_dropout_hides_motion_but_keeps_speed(recorded):
+    import numpy as np
+
+    from bid_model.recordings import motion_dropout
+
+    train, val, desc = open_recordings(recorded, (48, 144), 0.5, 0, motion_drop=0.5)
+    hidden = train.motionless
+    assert desc["train_shown_motionless"] == hidden.sum() and 0.3 < hidden.mean() < 0.7
+    assert not val.motionless.any()  # validation: every frame as recorded
+    i = next(i for i in range(len(train)) if hidden[i] and train.index.speed[train.rows[i]] > 1.0)
+    s = train[i]
+    assert torch.equal(s["prev_frame"], s["frame"]) and s["speed_mps"] == pytest.approx(train.index.speed[train.rows[i]])
+    j = next(j for j in range(1, len(train)) if not hidden[j] and not train.still[j]
+             and train.index.speed[train.rows[j]] > 1.0)
+    assert not torch.equal(train[j]["prev_frame"], train[j]["frame"])  # moving, shown as recorded
+    assert np.array_equal(motion_dropout(100, 0.5, 3), motion_dropout(100, 0.5, 3))
+    assert not motion_dropout(100, 0.0, 3).any()
+    with pytest.raises(BidError, match="motion dropout"):
+        motion_dropout(10, 1.0, 0)

@@ -1,5 +1,8 @@
 """Recovery data: Perturbed steers the car off now and then while the label stays the
-expert's, and the episode records the label, not what the car executed."""
+expert's, and the episode records the label, not what the car executed; under Dagger a
+student drives, the expert labels and takes the wheel when the student strays."""
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,7 +12,7 @@ from bid_sim.ego import Control, EgoParams
 from bid_sim.episode import run_episode
 from bid_sim.errors import BidError
 from bid_sim.expert import Expert
-from bid_sim.perturb import PULSE_STEER, Perturbed
+from bid_sim.perturb import GIVE_UP_STEPS, PULSE_STEER, Dagger, Perturbed
 
 
 def _info(seed: int) -> EpisodeInfo:
@@ -78,3 +81,96 @@ def test_episode_records_the_experts_label_not_the_executed_control(town02):
     run_episode(town02, 0, "ClearNoon", "none", 4, agent, recorder=labels, max_steps=120)
     assert labels.controls == [label for _, label in executed]
     assert any(c != label for c, label in executed)  # the car was pushed at least once
+
+
+class _Drifter:
+    """A student that drives straight on at a steady throttle, whatever the road does."""
+
+    def reset(self, info):
+        pass
+
+    def act(self, obs):
+        return Control(0.12, 0.5)
+
+
+def test_dagger_labels_are_the_teachers_and_the_teacher_takes_the_wheel(town02):
+    teacher = Expert()
+    agent = Dagger(_Drifter(), teacher)
+    labels, log = _Labels(), []
+    act = agent.act
+
+    def spy(obs):
+        c = act(obs)
+        log.append((c, agent.label, obs.snapshot.ego.lateral_m))
+        return c
+
+    agent.act = spy
+    result = run_episode(town02, 0, "ClearNoon", "none", 3, agent, recorder=labels, max_steps=400)
+    recorded = len(log) - (result.status == "gave_up")  # the step it gave up on is not recorded
+    assert labels.controls == [label for _, label, _ in log[:recorded]]
+    student_steps = [c for c, label, _ in log if c.steer == 0.12]
+    assert student_steps and len(student_steps) < len(log)  # both drove
+    assert 0.0 < agent.student_share < 1.0
+    assert agent.student_share == pytest.approx(len(student_steps) / len(log))
+    # The student alone leaves the lane at once; with the gate the car stays near the route.
+    assert max(abs(lat) for _, _, lat in log) < 4.0
+    assert result.status != "route_deviation"
+    # While the teacher brakes, the car brakes at least as hard.
+    assert all(c.accel <= max(label.accel, 0.0) + 1e-9 for c, label, _ in log if label.accel < 0 and c.steer == 0.12)
+
+
+def test_dagger_and_perturb_do_not_mix(tmp_path):
+    from bid_sim.record import record
+
+    with pytest.raises(BidError, match="--dagger and --perturb"):
+        record("02", 1, ("ClearNoon",), ("none",), 0, 1, tmp_path, perturb=0.2, dagger="checkpoints/bid_small.pt")
+    with pytest.raises(BidError, match="no such checkpoint"):
+        record("02", 1, ("ClearNoon",), ("none",), 0, 1, tmp_path, dagger=str(tmp_path / "nope.pt"))
+
+
+def _standing(lateral_m: float) -> Observation:
+    ego = SimpleNamespace(lateral_m=lateral_m, heading_error_rad=0.0)
+    return Observation(None, None, 2, 0.0, SimpleNamespace(ego=ego))
+
+
+def test_dagger_gives_up_standing_off_the_route_only():
+    full_lock = Scripted(lambda step, obs: Control(-1.0, -1.0))
+    agent = Dagger(Scripted(lambda step, obs: Control(0.0, -0.5)), full_lock)
+    agent.reset(_info(0))
+    flags = [(agent.act(_standing(2.0)), agent.gave_up)[1] for _ in range(GIVE_UP_STEPS)]
+    assert not any(flags[:-1]) and flags[-1]
+    agent.reset(_info(0))
+    assert not agent.gave_up
+    for _ in range(3 * GIVE_UP_STEPS):  # waiting on the route (a red light) goes on
+        agent.act(_standing(0.1))
+    assert not agent.gave_up
+
+
+class _Quitter:
+    def reset(self, info):
+        self.steps = 0
+
+    def act(self, obs):
+        self.steps += 1
+        self.gave_up = self.steps > 5
+        return Control(0.0, 0.5)
+
+
+def test_an_agent_that_gives_up_ends_the_episode_unrecorded_from_there(town02):
+    labels = _Labels()
+    result = run_episode(town02, 0, "ClearNoon", "none", 0, _Quitter(), recorder=labels, max_steps=100)
+    assert result.status == "gave_up" and len(labels.controls) == 5
+
+
+def test_bid_record_dagger_writes_labelled_recordings(tmp_path):
+    from bid_model.recordings import _index, find_recordings
+    from bid_sim.cli import main as bid
+
+    out = tmp_path / "dagger"
+    assert bid(["record", "--town", "02", "--episodes", "1", "--densities", "none", "--weathers", "ClearNoon",
+                "--max-steps", "40", "--workers", "1", "--dagger", "checkpoints/bid_small.pt", "--out", str(out),
+                "--json"]) == 0
+    files, partial = find_recordings(out)
+    assert len(files) == 1 and not partial
+    ix = _index(files, keep_jpeg=False)
+    assert ix.facts[0]["dagger"] == "bid_small.pt" and len(ix.step) == 40

@@ -17,6 +17,7 @@ import torch
 from bid_model.checkpoint import load_checkpoint, load_model
 from bid_model.config import RunConfig, tiny
 from bid_model.data import synthetic_split
+from bid_model.model import BID
 from bid_model.recordings import RecordingDataset
 from bid_model.train import METRIC_COLUMNS, EpisodeShardSampler, item_episodes, train
 from bid_sim.cli import main as bid
@@ -182,3 +183,26 @@ def test_torchrun_ddp_equals_one_process_with_the_same_global_batch(tmp_path):
     assert ddp["model"].keys() == one.keys()
     for key, w in one.items():
         torch.testing.assert_close(ddp["model"][key], w, rtol=1e-4, atol=1e-4, msg=key)
+
+
+def test_init_starts_from_a_checkpoints_weights(tmp_path, capsys):
+    first = quick_run(1)
+    train(tmp_path / "a", first, synthetic=True, progress=False)
+    start = load_checkpoint(tmp_path / "a" / "last.pt")["model"]
+    # A learning rate too small to move anything: the fine-tuned weights are the start's.
+    still = RunConfig(first.model, dataclasses.replace(first.train, lr=1e-20, weight_decay=0.0))
+    train(tmp_path / "b", still, synthetic=True, progress=False, init=tmp_path / "a" / "last.pt")
+    tuned = load_checkpoint(tmp_path / "b" / "last.pt")
+    weights = [name for name, _ in BID(first.model).named_parameters()]  # not the running statistics
+    assert weights and all(torch.allclose(start[k], tuned["model"][k]) for k in weights)
+    assert tuned["init"]["path"] == str(tmp_path / "a" / "last.pt")
+    # From scratch, the same run ends elsewhere.
+    train(tmp_path / "c", still, synthetic=True, progress=False)
+    scratch = load_checkpoint(tmp_path / "c" / "last.pt")["model"]
+    assert not all(torch.allclose(start[k], scratch[k]) for k in weights)
+    other = RunConfig(dataclasses.replace(first.model, speed_input=True), first.train)
+    with pytest.raises(BidError, match="different model \\(speed_input"):
+        train(tmp_path / "d", other, synthetic=True, progress=False, init=tmp_path / "a" / "last.pt")
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--out", str(tmp_path / "e"),
+                "--init", str(tmp_path / "missing.pt")]) == 2
+    assert "no checkpoint at" in capsys.readouterr().err
