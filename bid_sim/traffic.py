@@ -26,6 +26,14 @@ PED_SIZE = (0.5, 0.6, 1.75)
 N_COLOURS = 8
 KEEP_CLEAR_M = 10.0  # no actor spawns this close to the ego's start
 RETRIP_EVERY = 10  # steps between checks for actors near the end of their trip
+# Dense traffic on a small grid of blocks (crowded Town02) locks up in rings of queues, each
+# waiting for the next, that only SUMO's teleport (--time-to-teleport) would break, much later
+# and with every car in it stuck. A car that has stood JAM_S seconds with no red or amber
+# light holding it (a queue moves up within seconds of green) is in such a lock: the
+# longest-standing one is taken out and spawned elsewhere, one per check, until queues move.
+JAM_S = 30.0
+SIGNAL_HOLD_M = 60.0  # a red light this far ahead (or nearer) may hold a queue
+STANDING_MPS = 0.1  # SUMO's own threshold for waiting
 
 
 @dataclass
@@ -33,6 +41,7 @@ class ActorInfo:
     kind: str  # "vehicle" | "pedestrian"
     size: tuple[float, float, float]
     colour: int
+    placed: bool = False  # put there by a scenario or test (World.place_vehicle): never replaced
 
 
 class Traffic:
@@ -51,6 +60,8 @@ class Traffic:
         self._next_vehicle = 0
         self._next_person = 0
         self._steps = 0
+        self.gridlock_removals = 0  # cars taken out of a gridlock (_clear_gridlock)
+        self._held: dict[str, float] = {}  # standing car -> seconds no signal held it
 
     def define_types(self) -> None:
         for type_id, length, width, height in VEHICLE_TYPES:
@@ -156,6 +167,7 @@ class Traffic:
             if self.actors.pop(vid, None) is not None:
                 self._add_vehicle()
         if self._steps % RETRIP_EVERY == 0:
+            self._clear_gridlock(vehicle_ids)
             # A car whose spawn spot stayed blocked is tried again elsewhere.
             for vid in sorted(traci.simulation.getPendingVehicles()):
                 if vid in self.actors and vid.startswith("veh"):
@@ -168,6 +180,31 @@ class Traffic:
                 self.actors.pop(pid)
                 self._walk_goal.pop(pid, None)
                 self._add_person()
+
+    def _clear_gridlock(self, vehicle_ids: tuple[str, ...]) -> None:
+        """Counts, per car, the seconds it has stood with no red or amber light ahead, and
+        takes the car with the most, if JAM_S or over, out of the traffic for a new one
+        elsewhere. Neither the ego (not one of the actors) nor a placed car is touched."""
+        dt = RETRIP_EVERY * traci.simulation.getDeltaT()
+        held = {}
+        for vid in vehicle_ids:
+            info = self.actors.get(vid)
+            if (info is None or info.kind != "vehicle" or info.placed
+                    or traci.vehicle.getSpeed(vid) >= STANDING_MPS):
+                continue
+            signal = [state for _, _, dist, state in traci.vehicle.getNextTLS(vid)[:1]
+                      if dist <= SIGNAL_HOLD_M and state in "rRyYu"]
+            held[vid] = self._held.get(vid, 0.0) + (0.0 if signal else dt)
+        self._held = held
+        stuck = [(t, vid) for vid, t in held.items() if t >= JAM_S - 1e-9]
+        if not stuck:
+            return
+        _, vid = min(stuck, key=lambda tv: (-tv[0], tv[1]))
+        traci.vehicle.remove(vid)
+        self.actors.pop(vid)
+        self._held.pop(vid)
+        self.gridlock_removals += 1
+        self._add_vehicle()
 
 
 def _dedup(edges: list[str]) -> list[str]:

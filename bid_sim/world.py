@@ -239,7 +239,7 @@ class World:
             traci.vehicle.setSpeedMode(vid, 0)
             traci.vehicle.setLaneChangeMode(vid, 0)  # held means held: no lane changes either
             traci.vehicle.setSpeed(vid, speed_mps)
-        self.traffic.actors[vid] = ActorInfo("vehicle", tuple(size), colour)
+        self.traffic.actors[vid] = ActorInfo("vehicle", tuple(size), colour, placed=True)
 
     def place_pedestrian(self, pid: str, edge: str, pos_m: float, wait_s: float = 1000.0) -> None:
         """Adds a pedestrian who stands still at a position on a walkable edge."""

@@ -89,3 +89,21 @@ def test_ego_can_leave_the_road_without_errors(town02, route02):
             w.snapshot_actors()
         assert w.step_count == 60
         assert math.hypot(w.ego.x_m - x, w.ego.y_m - y) > 15.0
+
+
+def test_a_car_stuck_without_a_red_light_is_replaced_and_flowing_traffic_is_not(town02, route02):
+    from bid_sim.traffic import JAM_S
+
+    with World(town02, "normal", 3, route02) as w:
+        # Flowing traffic, queues at red lights included: nothing is taken out.
+        w.step_idle(int(3 * JAM_S / 0.1))
+        assert w.traffic.gridlock_removals == 0
+        # A car that stops for good on its street (a breakdown, a gridlock) is.
+        stuck = sorted(v for v in traci.vehicle.getIDList() if v != EGO_ID)[0]
+        traci.vehicle.setSpeed(stuck, 0.0)
+        w.step_idle(int(4 * JAM_S / 0.1))
+        assert stuck not in traci.vehicle.getIDList()
+        assert stuck not in w.traffic.actors
+        assert w.traffic.gridlock_removals >= 1
+        n_veh, _ = town02.density("normal")
+        assert n_veh - 3 <= len([v for v in traci.vehicle.getIDList() if v != EGO_ID]) <= n_veh
