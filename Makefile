@@ -38,8 +38,10 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # The shipped BID drives six Town02 routes it has never seen, at normal density, in a test
-# weather; one episode is filmed with the Grad-CAM overlay.
+# weather; one episode is filmed with the Grad-CAM overlay. It starts afresh each time (a few
+# minutes), so a re-exported checkpoint is never scored with the previous one's episodes.
 demo: $(STAMP)
+	rm -rf results/demo
 	$(BID) evaluate --town 02 --density normal --weathers WetSunset --seeds 1 --routes 0,1,2,3,4,5 \
 		--agent bid --checkpoint $(SHIPPED) --workers $(WORKERS) --video 1 --out results/demo
 	@echo "video with Grad-CAM: $$(ls results/demo/videos/*.mp4)"

@@ -19,6 +19,7 @@ results/NAME/
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.metadata
 import json
@@ -199,6 +200,15 @@ class _Tee:
 
 # ----------------------------------------------------------------------------- the run
 
+def file_digest(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes: a checkpoint re-exported to the same path is another agent."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int, agent: str,
              out: str | os.PathLike, checkpoint: str | None = None, workers: int = 1,
              routes: list[int] | None = None, record: bool = False, video: bool | int = False,
@@ -224,6 +234,7 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     load_agent(agent, checkpoint, options)  # fail here, once, before any worker starts
     config = {"town": resolve_town(town).name, "densities": list(densities), "weathers": list(weathers),
               "seeds": seeds, "agent": agent, "checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
+              "checkpoint_sha256": file_digest(checkpoint) if checkpoint else None,
               "routes": routes, "options": options or None, "max_steps": max_steps, "software": f"bid-sim {__version__}"}
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -234,7 +245,9 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
         old = json.loads(cfg_path.read_text())
         diff = [k for k in config if k != "software" and old.get(k) != config[k]]
         if diff:
-            raise BidError(f"{out} holds results of another configuration ({', '.join(diff)} differ); "
+            changed = " (the checkpoint file changed since these results were written)" \
+                if "checkpoint_sha256" in diff else ""
+            raise BidError(f"{out} holds results of another configuration ({', '.join(diff)} differ{changed}); "
                            "use another --out, or the same options to resume")
     else:
         cfg_path.write_text(json.dumps(config, indent=1))

@@ -101,3 +101,16 @@ def test_exported_checkpoint_drives_the_same_and_is_smaller(checkpoint, town02, 
     for agent in (a, b):
         run_episode(town02, 1, "WetSunset", "none", 0, agent, renderer=renderer, max_steps=4)
     assert a.controls == b.controls
+
+
+def test_results_of_a_checkpoint_rewritten_in_place_are_not_resumed(checkpoint, tmp_path, capsys):
+    ckpt = tmp_path / "bid.pt"
+    ckpt.write_bytes(checkpoint.read_bytes())
+    args = ["evaluate", "--town", "02", "--density", "none", "--weathers", "WetSunset", "--routes", "3",
+            "--agent", "bid", "--checkpoint", str(ckpt), "--workers", "1", "--max-steps", "3",
+            "--out", str(tmp_path / "res")]
+    assert main(args) == 0
+    assert main(args) == 0  # the same file: resumes (nothing left to run)
+    assert main(["export", str(checkpoint.parent), "--which", "last.pt", "--out", str(ckpt)]) == 0
+    assert main(args) == 2
+    assert "checkpoint file changed" in capsys.readouterr().err
