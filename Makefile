@@ -81,18 +81,20 @@ dagger: $(STAMP)
 		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs 3 --lr 1e-4)
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
-# training, a DAgger round, the Town02 NoCrash for the expert and the new BID, and the
-# result tables. The shipped checkpoint is left alone: copy runs/reproduce_dagger1/best.pt
-# over it with `bid export` only if it drives better.
+# training, three DAgger rounds (as the shipped checkpoint had), the Town02 NoCrash for the
+# expert and the new BID, and the result tables. The shipped checkpoint is left alone: copy
+# runs/reproduce_dagger3/last.pt over it with `bid export` only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
 	$(MAKE) dagger STUDENT=runs/reproduce/best.pt ROUND=1 DAGGER_RUN=reproduce_dagger1
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger1/last.pt ROUND=2 DAGGER_RUN=reproduce_dagger2
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger2/last.pt ROUND=3 DAGGER_RUN=reproduce_dagger3
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_dagger1/best.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_dagger1/best.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_dagger3/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_dagger3/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 
