@@ -202,11 +202,8 @@ class _Tee:
 
 def file_digest(path: str | os.PathLike) -> str:
     """SHA-256 of a file's bytes: a checkpoint re-exported to the same path is another agent."""
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int, agent: str,
