@@ -33,6 +33,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init", default=None, metavar="CHECKPOINT",
                    help="start from this checkpoint's weights (fine-tuning; same preset and flags)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--compile", action="store_true",
+                   help="CUDA only: torch.compile each brain area (faster steps after a warm-up)")
     p.add_argument("--workers", type=int, default=None, help="data loader processes")
     p.add_argument("--threads", type=int, default=None,
                    help="CPU threads for torch (default: all cores; 1 on a busy machine)")

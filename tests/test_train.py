@@ -87,6 +87,8 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
          "nothing to resume"),
         (["train", "--resume"], "--out DIR or --name"),
         (["train", "--preset", "tiny", "--synthetic", "--epochs", "0"], "--epochs"),
+        (["train", "--preset", "tiny", "--synthetic", "--device", "cpu", "--compile",
+          "--out", str(tmp_path / "c")], "--compile is for CUDA"),
         (["gradcam", "--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path)],
          "no checkpoint"),
     ]
@@ -94,6 +96,7 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
         assert bid(argv) == 2, argv
         err = capsys.readouterr().err.strip()
         assert err.startswith("error: ") and message in err and "\n" not in err, (argv, err)
+    assert not (tmp_path / "c").exists()  # refused before the run folder is made
 
 
 def test_checkpoint_from_another_preset_is_refused(tmp_path, capsys):
