@@ -22,10 +22,12 @@ CHECKPOINT ?= $(SHIPPED)
 WEATHERS ?= test
 SEEDS ?= 3
 
-# A DAgger round: which checkpoint drives, and the round's number (its routes' seed).
+# A DAgger round: which checkpoint drives, the round's number (its routes' seed) and its
+# fine-tuning epochs (the shipped BID had 3 in round 1, 2 in each round after).
 STUDENT ?= runs/small/best.pt
 ROUND ?= 1
 DAGGER_RUN ?= small_dagger$(ROUND)
+DAGGER_EPOCHS ?= 3
 
 .PHONY: demo test bench towns clean lint record evaluate train dagger reproduce
 
@@ -78,7 +80,7 @@ dagger: $(STAMP)
 	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) --workers $(WORKERS) \
 		--out data/town01/dagger$(ROUND)
 	$(BID) train --preset small --data data/town01 --name $(DAGGER_RUN) \
-		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs 3 --lr 1e-4)
+		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4)
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
 # training, three DAgger rounds (as the shipped checkpoint had), the Town02 NoCrash for the
@@ -88,8 +90,8 @@ reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
 	$(MAKE) dagger STUDENT=runs/reproduce/best.pt ROUND=1 DAGGER_RUN=reproduce_dagger1
-	$(MAKE) dagger STUDENT=runs/reproduce_dagger1/last.pt ROUND=2 DAGGER_RUN=reproduce_dagger2
-	$(MAKE) dagger STUDENT=runs/reproduce_dagger2/last.pt ROUND=3 DAGGER_RUN=reproduce_dagger3
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger1/last.pt ROUND=2 DAGGER_RUN=reproduce_dagger2 DAGGER_EPOCHS=2
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger2/last.pt ROUND=3 DAGGER_RUN=reproduce_dagger3 DAGGER_EPOCHS=2
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
