@@ -120,6 +120,7 @@ def main() -> None:
                    help="batch sizes of the GPU sweep (default 64,100,128,256)")
     args = p.parse_args()
     quick = args.quick
+    batches = [int(b) for b in args.gpu_batches.split(",")]
     cpu = torch.device("cpu")
     threads = torch.get_num_threads()
     # Other programs slow torch's OpenMP threads a lot (see bid_model.train.default_threads):
@@ -129,7 +130,7 @@ def main() -> None:
     if args.gpu_only:
         if not torch.cuda.is_available():
             raise SystemExit("error: --gpu-only but no CUDA GPU is visible; drop --gpu-only")
-        result.update(gpu_figures(quick, [int(b) for b in args.gpu_batches.split(",")]))
+        result.update(gpu_figures(quick, batches))
         print(json.dumps(result, indent=1))
         return
     lat = latency_ms("small", 20 if quick else 200)
@@ -144,7 +145,7 @@ def main() -> None:
     result["paper_fwd_bwd_samples_per_s_cpu"] = round(
         train_samples_per_s("paper", 1, 1 if quick else 2, cpu), 3)
     if torch.cuda.is_available():
-        result.update(gpu_figures(quick, [int(b) for b in args.gpu_batches.split(",")]))
+        result.update(gpu_figures(quick, batches))
     result["load_avg_1min_after"] = round(os.getloadavg()[0], 2)
     result["parameters"] = {name: BID(preset(name).model).parameter_counts()
                             for name in ("paper", "small")}
