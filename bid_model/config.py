@@ -89,6 +89,7 @@ class TrainConfig:
     stop_keep: float = 1.0  # share of standing, braking frames trained on (recordings.balance_rows)
     start_repeat: int = 1  # times each moving-off frame is trained on
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
+    augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     seed: int = 0
     workers: int = 2
     synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`

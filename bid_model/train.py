@@ -42,6 +42,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 from tqdm import tqdm
 
+from bid_model.augment import photometric
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
 from bid_model.config import RunConfig, TrainConfig, preset, with_variant
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
@@ -344,6 +345,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
                dynamic_ncols=True, mininterval=1.0)
     for i, batch in enumerate(bar):
         inputs, target = batch_inputs(batch, device)
+        if tc.augment > 0:
+            inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
         with _autocast(device):
             pred = net(*inputs)
         loss = l1_loss(pred, target, tc)
@@ -574,7 +577,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     """The run config the flags ask for; None with --resume (the saved config is used)."""
     flags = {"--variant": args.variant, "--epochs": args.epochs, "--batch-size": args.batch_size,
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
-             "--speed-input": args.speed_input}
+             "--speed-input": args.speed_input, "--augment": args.augment}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -599,6 +602,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not args.lr > 0:
             raise BidError(f"--lr must be positive, got {args.lr}")
         tc = dataclasses.replace(tc, lr=args.lr)
+    if args.augment is not None:
+        if not 0.0 <= args.augment <= 1.0:
+            raise BidError(f"--augment is the share of training samples to augment, 0 to 1; got {args.augment}")
+        tc = dataclasses.replace(tc, augment=args.augment)
     return RunConfig(model, tc)
 
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from bid_model.augment import photometric
 from bid_model.checkpoint import load_checkpoint, load_model
 from bid_model.config import RunConfig, tiny
 from bid_model.data import synthetic_split
@@ -60,8 +61,10 @@ def test_bid_train_writes_the_run_folder(tmp_path, capsys):
     assert run.preset == "tiny" and not model.training
 
 
-def test_resume_continues_exactly(tmp_path):
+@pytest.mark.parametrize("augment", [0.0, 0.8])
+def test_resume_continues_exactly(tmp_path, augment):
     run = quick_run(3)
+    run = RunConfig(run.model, dataclasses.replace(run.train, augment=augment))
     straight = train(tmp_path / "a", run, synthetic=True, progress=False)
     first = train(tmp_path / "b", run, synthetic=True, progress=False, stop_after=1)
     assert len(first) == 1
@@ -87,6 +90,7 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
          "nothing to resume"),
         (["train", "--resume"], "--out DIR or --name"),
         (["train", "--preset", "tiny", "--synthetic", "--epochs", "0"], "--epochs"),
+        (["train", "--preset", "tiny", "--synthetic", "--augment", "1.5"], "--augment"),
         (["train", "--preset", "tiny", "--synthetic", "--device", "cpu", "--compile",
           "--out", str(tmp_path / "c")], "--compile is for CUDA"),
         (["gradcam", "--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path)],
@@ -97,6 +101,25 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("error: ") and message in err and "\n" not in err, (argv, err)
     assert not (tmp_path / "c").exists()  # refused before the run folder is made
+
+
+def test_photometric_augmentation_changes_both_frames_alike():
+    g = torch.Generator().manual_seed(0)
+    frame = torch.randint(0, 256, (64, 3, 8, 12), dtype=torch.uint8, generator=g)
+    prev = torch.randint(0, 256, (64, 3, 8, 12), dtype=torch.uint8, generator=g)
+    a, b = photometric(frame, prev, 0.5, torch.Generator().manual_seed(1))
+    assert a.dtype == torch.uint8 and a.shape == frame.shape
+    changed = (a != frame).flatten(1).any(1)
+    assert changed.equal((b != prev).flatten(1).any(1))  # both frames of a sample, or neither
+    assert 16 < int(changed.sum()) < 48
+    again = photometric(frame, prev, 0.5, torch.Generator().manual_seed(1))
+    assert a.equal(again[0]) and b.equal(again[1])
+    same, same_too = photometric(frame, frame, 1.0, torch.Generator().manual_seed(2))
+    assert same.equal(same_too) and not same.equal(frame)  # no motion made where there was none
+    untouched = photometric(frame, prev, 0.0)
+    assert untouched[0] is frame and untouched[1] is prev
+    with pytest.raises(ValueError, match="two"):
+        photometric(frame, prev[:3], 1.0)
 
 
 def test_checkpoint_from_another_preset_is_refused(tmp_path, capsys):
