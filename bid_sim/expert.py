@@ -138,9 +138,14 @@ class _TownFacts:
             else Polygon()
         cross = shapely.union_all([Polygon(r) for r in town_map.crossings]) if town_map.crossings \
             else Polygon()
-        # Where a pedestrian is out of the cars' way: sidewalks and walking areas, not crossings.
-        self.kerb = walk.difference(cross)
+        # Where a pedestrian is out of the cars' way: sidewalks and walking areas, not crossings,
+        # and not where a walking area reaches over a driving lane (Town05 has 350 m² of such).
+        lanes = shapely.union_all([LineString(lane.centre).buffer(lane.width_m / 2 - 0.3, cap_style="flat")
+                                   for lane in town_map.lanes if not lane.internal])
+        self.kerb = walk.difference(cross).difference(lanes)
         shapely.prepare(self.kerb)
+        self.walk_on_road = walk.intersection(lanes)  # pedestrians walk there, across the lanes
+        shapely.prepare(self.walk_on_road)
 
     def link_of(self, incoming: str, first_via: str) -> _Link | None:
         """The link that leaves the incoming lane through the given first connector lane."""
@@ -690,12 +695,15 @@ class Expert:
             on_kerb = np.zeros(moving.size, bool)
             a = moving.ravel()
             on_kerb[a] = shapely.contains_xy(self.facts.kerb, flat[a, 0], flat[a, 1])
-            # Pedestrians keep to kerbs and crossings: a straight-line guess that cuts
-            # through a junction counts only where it meets the path on a crossing.
+            # Pedestrians keep to kerbs, crossings and walking areas: a straight-line guess that
+            # cuts through a junction counts only where it meets the path on a crossing or on a
+            # walking area that reaches over the lanes.
             on_crossing = np.zeros(s.shape, bool)
             for c_in, c_out in self.plan.crossings:
                 on_crossing |= (s > c_in - 0.5) & (s < c_out + 0.5)
-            plausible = (ts[None, :] == 0) | on_crossing
+            on_road_walk = np.zeros(moving.size, bool)
+            on_road_walk[a] = shapely.contains_xy(self.facts.walk_on_road, flat[a, 0], flat[a, 1])
+            plausible = (ts[None, :] == 0) | on_crossing | on_road_walk.reshape(moving.shape)
             danger |= moving & ~on_kerb.reshape(moving.shape) & plausible
         out = self._right_hook(snap, idx, s[:, 0], lat[:, 0], hd, walking, s_c, s_f)
         for j in np.nonzero(danger.any(axis=1))[0]:

@@ -198,3 +198,23 @@ def test_a_replanned_route_is_understood_from_its_polyline(town02, route02):
     assert [j.node for j in expert.plan.junctions] == expected and expected
     assert all(j.link is not None and j.conflicts for j in expert.plan.junctions)
     assert expert.plan.length_m == pytest.approx(fresh.length_m, abs=0.5)
+
+
+def test_a_walking_area_over_a_driving_lane_is_not_kerb():
+    """Town05's walking areas reach over its ring road: a pedestrian there walks into the
+    expert's lane (route 8, normal, seed 0 hit one at 13.9 m/s) and must not count as on the kerb."""
+    import numpy as np
+    import shapely
+
+    from bid_sim.expert import _TownFacts
+    from bid_sim.town_map import load_town_map
+    from bid_sim.towns import resolve_town
+
+    town = resolve_town("05")
+    facts = _TownFacts(load_town_map(town), road_graph(town.net_file))
+    ped = np.array([[-235.5, -78.73], [-234.2, -78.73]])  # where it walked, on lane S22_3's side
+    walk = shapely.union_all([shapely.Polygon(r) for r in facts.map.sidewalks])
+    assert shapely.contains_xy(walk, ped[:, 0], ped[:, 1]).all()  # inside a walking area ...
+    assert not shapely.contains_xy(facts.kerb, ped[:, 0], ped[:, 1]).any()  # ... yet in the road
+    centres = np.concatenate([lane.centre for lane in facts.map.lanes if not lane.internal])
+    assert not shapely.contains_xy(facts.kerb, centres[:, 0], centres[:, 1]).any()
