@@ -23,11 +23,13 @@ WEATHERS ?= test
 SEEDS ?= 3
 
 # A DAgger round: which checkpoint drives, the round's number (its routes' seed) and its
-# fine-tuning epochs (the shipped BID had 3 in round 1, 2 in each round after).
+# fine-tuning epochs (the shipped BID had 3 in round 1, 2 in each round after) and the share
+# of samples given a random lighting change (the shipped BID: 0.8 in round 4, none before).
 STUDENT ?= runs/small/best.pt
 ROUND ?= 1
 DAGGER_RUN ?= small_dagger$(ROUND)
 DAGGER_EPOCHS ?= 3
+AUGMENT ?= 0
 
 .PHONY: demo test bench towns clean lint record evaluate train dagger reproduce
 
@@ -80,23 +82,25 @@ dagger: $(STAMP)
 	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) --workers $(WORKERS) \
 		--out data/town01/dagger$(ROUND)
 	$(BID) train --preset small --data data/town01 --name $(DAGGER_RUN) \
-		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4)
+		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT))
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
-# training, three DAgger rounds (as the shipped checkpoint had), the Town02 NoCrash for the
-# expert and the new BID, and the result tables. The shipped checkpoint is left alone: copy
-# runs/reproduce_dagger3/last.pt over it with `bid export` only if it drives better.
+# training, four DAgger rounds (as the shipped checkpoint had, the last one augmented), the
+# Town02 NoCrash for the expert and the new BID, and the result tables. The shipped checkpoint
+# is left alone: copy runs/reproduce_dagger4/last.pt over it with `bid export` only if it
+# drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
 	$(MAKE) dagger STUDENT=runs/reproduce/best.pt ROUND=1 DAGGER_RUN=reproduce_dagger1
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger1/last.pt ROUND=2 DAGGER_RUN=reproduce_dagger2 DAGGER_EPOCHS=2
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger2/last.pt ROUND=3 DAGGER_RUN=reproduce_dagger3 DAGGER_EPOCHS=2
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger3/last.pt ROUND=4 DAGGER_RUN=reproduce_dagger4 DAGGER_EPOCHS=2 AUGMENT=0.8
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_dagger3/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_dagger3/last.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_dagger4/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_dagger4/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 
