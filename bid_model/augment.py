@@ -1,7 +1,7 @@
 """Photometric augmentation of training frames (`bid train --augment SHARE`).
 
 The BID trains on four weathers and is tested on two others. On the same 25 Town02 routes
-without traffic the shipped `small` BID succeeded on 64 % under ClearSunset but 12 % under
+without traffic the DAgger-round-3 `small` BID succeeded on 64 % under ClearSunset but 12 % under
 WetSunset, which differs from it by a darker, shinier road: lane keeping hangs on the exact
 brightness and colour of road and kerb. A share of the training samples therefore gets a
 random change of brightness, contrast, saturation and colour balance. Frame t and frame t−1

@@ -4,13 +4,17 @@ traffic, determinism; and its pure helpers."""
 import math
 
 import libsumo as traci
+import numpy as np
 import pytest
+import shapely
 
 from bid_sim import metrics as m
 from bid_sim.episode import run_episode
-from bid_sim.expert import Expert, ExpertConfig, _idm, _travel_time
+from bid_sim.expert import Expert, ExpertConfig, _idm, _TownFacts, _travel_time
 from bid_sim.routes import CHANGELANELEFT, RouteSpec, plan_spec, road_graph
 from bid_sim.snapshot import RED
+from bid_sim.town_map import load_town_map
+from bid_sim.towns import resolve_town
 
 LONG = RouteSpec("S1", 150.0, "S1", 300.0)  # Town02's long northern street, no junction
 THROUGH_J400 = RouteSpec("S1", 290.0, "-S0", 30.0)  # straight over the signalised J400
@@ -203,13 +207,6 @@ def test_a_replanned_route_is_understood_from_its_polyline(town02, route02):
 def test_a_walking_area_over_a_driving_lane_is_not_kerb():
     """Town05's walking areas reach over its ring road: a pedestrian there walks into the
     expert's lane (route 8, normal, seed 0 hit one at 13.9 m/s) and must not count as on the kerb."""
-    import numpy as np
-    import shapely
-
-    from bid_sim.expert import _TownFacts
-    from bid_sim.town_map import load_town_map
-    from bid_sim.towns import resolve_town
-
     town = resolve_town("05")
     facts = _TownFacts(load_town_map(town), road_graph(town.net_file))
     ped = np.array([[-235.5, -78.73], [-234.2, -78.73]])  # where it walked, on lane S22_3's side
