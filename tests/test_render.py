@@ -19,6 +19,7 @@ from render_scenes import (
 from bid_sim.cli import main
 from bid_sim.errors import BidError
 from bid_sim.render import PRESETS, CameraRig, Renderer
+from bid_sim.render.camera import MARGIN_PX
 from bid_sim.render.pool import RenderPool
 from bid_sim.snapshot import GREEN, OFF, RED, YELLOW
 from bid_sim.town_map import load_town_map
@@ -93,6 +94,34 @@ def test_car_to_the_right_lands_in_the_right_camera(clear, tmap):
 def test_car_behind_is_not_drawn(clear, tmap):
     base = clear.render(empty_street(tmap))
     assert len(changed(clear.render(with_car(tmap, -12.0)), base)) == 0
+
+
+@pytest.mark.parametrize("yaws", [(60.0, 0.0, -60.0), (0.0, 180.0), (150.0, -150.0), (0.0,)])
+def test_view_cull_matches_the_cameras_fields_of_view(tmap, yaws):
+    """The renderer drops actors and walls outside every camera's horizontal field of view
+    before building their faces; it must keep exactly the discs some camera can see."""
+    r = Renderer(tmap, CameraRig(width_px=120, height_px=90, yaws_deg=yaws))
+    rng = np.random.default_rng(7)
+    n = 4000
+    rel = rng.uniform(-30, 30, (n, 2))
+    rad = rng.uniform(0.1, 8.0, n)
+    ego_yaw = 0.7
+    d2 = (rel ** 2).sum(axis=1)
+    got = r._in_view(rel, d2, rad, [(math.cos(ego_yaw + a), math.sin(ego_yaw + a)) for a in r._fov_mid])
+    # Brute force, camera by camera: the angle from the camera's axis to the disc's centre
+    # is at most the half field of view (canvas margin included) plus the disc's angular radius.
+    half = math.atan((r.rig.width_px / 2 + MARGIN_PX) / r.rig.focal_px)
+    d = np.sqrt(d2)
+    grow = np.where(d > rad, np.arcsin(np.minimum(rad / np.maximum(d, 1e-9), 1.0)), np.pi)
+    slack = np.full(n, -np.inf)
+    for y in yaws:
+        off = np.arctan2(rel[:, 1], rel[:, 0]) - (ego_yaw + math.radians(y))
+        ang = np.abs((off + np.pi) % (2 * np.pi) - np.pi)
+        slack = np.maximum(slack, half + grow - ang)
+    clear_cut = np.abs(slack) > 1e-6
+    assert clear_cut.sum() > 0.99 * n
+    assert (got[clear_cut] == (slack[clear_cut] > 0)).all()
+    assert 0 < got.sum() < n
 
 
 def test_car_beyond_view_range_is_not_drawn(clear, tmap):

@@ -332,6 +332,16 @@ _PED_SIDE = np.array([[[-hw, hw, hw, -hw] for hw, _, _ in _PED_PARTS]])  # (1, 3
 _PED_UP = np.array([[[z0, z0, z1, z1] for _, z0, z1 in _PED_PARTS]])
 
 
+def _ped_colours() -> np.ndarray:
+    """(P, 3, 3) trousers, shirt and skin for each colour index modulo P (the pattern's period)."""
+    idx = np.arange(math.lcm(len(TROUSERS), 5 * len(SHIRTS), 35 * len(SKIN)))
+    return np.stack([TROUSERS[idx % len(TROUSERS)], SHIRTS[(idx // 5) % len(SHIRTS)],
+                     SKIN[(idx // 35) % len(SKIN)]], axis=1)
+
+
+_PED_COLOURS = _ped_colours()
+
+
 def pedestrian_faces(xy: np.ndarray, size: np.ndarray, colour: np.ndarray, eye: np.ndarray,
                      first_obj: int) -> Faces:
     """Each pedestrian as an upright figure (legs, torso, head) turned towards the camera."""
@@ -347,9 +357,7 @@ def pedestrian_faces(xy: np.ndarray, size: np.ndarray, colour: np.ndarray, eye: 
     quads[..., 0] = xy[:, 0, None, None] + side * ty[:, None, None]  # sideways = (ty, -tx)
     quads[..., 1] = xy[:, 1, None, None] - side * tx[:, None, None]
     quads[..., 2] = _PED_UP * h[:, None, None]
-    idx = np.asarray(colour, dtype=np.int64)
-    cols = np.stack([TROUSERS[idx % len(TROUSERS)], SHIRTS[(idx // 5) % len(SHIRTS)],
-                     SKIN[(idx // 35) % len(SKIN)]], axis=1)
+    cols = _PED_COLOURS[np.asarray(colour, dtype=np.int64) % len(_PED_COLOURS)]
     normals = np.zeros((n, 3, 3))
     normals[..., 0] = tx[:, None]
     normals[..., 1] = ty[:, None]

@@ -6,8 +6,9 @@ multiply-add per camera), then draw walls, signals, vehicles and pedestrians far
 (painter's algorithm). Objects are ordered among themselves by distance; against a wall
 they follow the wall's plane (an object on the camera's side of a wall is drawn after it,
 one behind it before it), which distance alone gets wrong for long facades. Last, the rain
-layer. Only geometry within the weather's view range is considered, found with vectorised
-distance tests, so the cost follows what is near the ego, not the size of the town.
+layer. Only geometry within the weather's view range and the cameras' horizontal field of
+view is considered, found with vectorised distance and angle tests before any face is built,
+so the cost follows what the ego can see, not the size of the town.
 """
 
 from __future__ import annotations
@@ -57,6 +58,9 @@ LAMP_OFF = (52, 48, 44)
 _LAMP_CODES = np.array([RED, YELLOW, GREEN])  # top to bottom, as in geometry's lamp_centres
 _LAMP_RGB = np.array([LAMP_COLOURS[c] for c in (RED, YELLOW, GREEN)], dtype=np.int64)
 _EPS = 1e-3
+HEAD_RADIUS_M = 0.5  # a signal head (pole, housing, lamps) fits in this disc around head_xy
+PED_RADIUS_M = 0.3  # a pedestrian's figure fits in this disc
+_HEAD_FACE_RANGE = np.arange(FACES_PER_HEAD)[None, :]
 
 
 @dataclass(frozen=True)
@@ -140,7 +144,7 @@ class Renderer:
         self._mul_all = np.tile(bg.ground_mul, (1, n_cam, 1))
         self._add_all = np.tile(bg.ground_add, (1, n_cam, 1))
         self._canvas = np.empty_like(self._bg_all)
-        self._cells: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._cells: dict[tuple[int, int], _Cell] = {}
         wc = rig.canvas_shape[1]
         self._views = [self._canvas[:, c * wc:(c + 1) * wc] for c in range(n_cam)]
         h, w = rig.height_px, rig.width_px
@@ -153,6 +157,16 @@ class Renderer:
         vhalf = math.atan((rig.height_px / 2.0 + MARGIN_PX) / rig.focal_px)
         self._side = (math.cos(half), math.sin(half))
         self._tan_h, self._tan_v = math.tan(half), math.tan(vhalf)
+        # The cameras' horizontal fields of view merged into intervals of azimuth (relative
+        # to the ego's heading): their middles, and cos, sin and the wrap term of half widths.
+        spans = _merge_spans([(math.radians(y) - half, math.radians(y) + half) for y in rig.yaws_deg])
+        self._fov_all = any(b - a >= 2 * math.pi for a, b in spans)
+        self._fov_mid = [0.5 * (a + b) for a, b in spans]
+        self._fov_trig = []
+        for a, b in spans:
+            hw = 0.5 * (b - a)
+            wide = math.sin(math.pi - hw) ** 2 if hw >= math.pi / 2 else 1.0
+            self._fov_trig.append((math.cos(hw), math.sin(hw), wide))
 
     # ------------------------------------------------------------------ public
 
@@ -166,7 +180,7 @@ class Renderer:
         eye = np.array([poses[0].x, poses[0].y, poses[0].z])
         fwd = np.array([p.fwd for p in poses])  # (C, 2)
         right = np.array([p.right for p in poses])
-        faces, obj_xy, obj_rad, lamps = self._gather(snapshot, eye)
+        faces, obj_xy, obj_rad, lamps = self._gather(snapshot, eye, ego.yaw_rad)
         shaded = self._shade(faces, eye)
         clock.lap("transform")
         keys, lamp_keys = self._keys(faces, obj_xy, obj_rad, lamps, eye)
@@ -218,37 +232,42 @@ class Renderer:
 
     # ------------------------------------------------------------------ gathering
 
-    def _gather(self, snap: Snapshot, eye: np.ndarray) -> tuple[Faces, np.ndarray, np.ndarray, _Lamps]:
-        """Faces within view range and facing the eye: walls, signals, vehicles, pedestrians.
+    def _gather(self, snap: Snapshot, eye: np.ndarray, yaw: float) -> tuple[Faces, np.ndarray, np.ndarray, _Lamps]:
+        """Faces within view range, in some camera's horizontal field of view and facing the
+        eye: walls, signals, vehicles, pedestrians.
 
         Objects (signal heads, then vehicles, then pedestrians) are numbered; obj_xy and
         obj_rad give each one's centre and footprint radius, for ordering against walls.
         """
         sc = self.scene
-        r = self.view_m
-        ex, ey = eye[0], eye[1]
-        cand, _ = self._near_static(ex, ey)
-        wc = sc.wall_centre[cand]
-        idx = cand[(wc[:, 0] - ex) ** 2 + (wc[:, 1] - ey) ** 2 < (r + sc.wall_radius[cand]) ** 2]
-        parts = [sc.walls.take(idx)]
+        r2 = self.view_m ** 2
+        eye2 = eye[:2]
+        cell = self._near_static(eye[0], eye[1])
+        axes = [(math.cos(yaw + a), math.sin(yaw + a)) for a in self._fov_mid]
+        rel = cell.wall_xy - eye2
+        d2 = rel[:, 0] ** 2 + rel[:, 1] ** 2
+        keep = (d2 < cell.wall_reach2) & (cell.wall_normal @ eye2 > cell.wall_plane)  # in range, facing
+        keep &= self._in_view(rel, d2, cell.wall_radius, axes)
+        parts = [cell.walls.take(np.flatnonzero(keep))]
         obj_xy, obj_rad = [], []
         lamps = _Lamps.none()
         n_obj = 0
-        if len(sc.head_xy):
-            heads = np.flatnonzero((sc.head_xy[:, 0] - ex) ** 2 + (sc.head_xy[:, 1] - ey) ** 2 < r * r)
+        if len(cell.heads):
+            rel = sc.head_xy[cell.heads] - eye2
+            d2 = rel[:, 0] ** 2 + rel[:, 1] ** 2
+            heads = cell.heads[(d2 < r2) & self._in_view(rel, d2, HEAD_RADIUS_M, axes)]
             n_obj = len(heads)
             if n_obj:
-                sf = sc.signal_faces
-                sel = (heads[:, None] * FACES_PER_HEAD + np.arange(FACES_PER_HEAD)[None, :]).ravel()
-                part = sf.take(sel)
+                sel = (heads[:, None] * FACES_PER_HEAD + _HEAD_FACE_RANGE).ravel()
+                part = sc.signal_faces.take(sel)
                 part.obj[:] = np.repeat(np.arange(n_obj), FACES_PER_HEAD)  # renumbered: near heads
                 parts.append(part)
-                obj_xy.append(sc.head_xy[heads])
+                hxy = sc.head_xy[heads]
+                obj_xy.append(hxy)
                 obj_rad.append(np.full(n_obj, 0.4))
                 # Lamps face their approach; from behind a head shows only its housing.
                 fv = sc.head_facing[heads]
-                toward = (fv[:, 0] * (ex - sc.head_xy[heads, 0]) + fv[:, 1] * (ey - sc.head_xy[heads, 1])) > 0
-                j = np.flatnonzero(toward)
+                j = np.flatnonzero(((eye2 - hxy) * fv).sum(axis=1) > 0)
                 if len(j):
                     states = np.asarray(snap.light_states)[heads[j]]
                     lamps = _Lamps(np.repeat(j, 3), sc.lamp_centres[heads[j]].reshape(-1, 3),
@@ -257,20 +276,23 @@ class Renderer:
         for kind, actors in (("v", snap.vehicles), ("p", snap.pedestrians)):
             if len(actors) == 0:
                 continue
-            xy = actors.xy
-            m = np.flatnonzero((xy[:, 0] - ex) ** 2 + (xy[:, 1] - ey) ** 2 < r * r)
+            rel = actors.xy - eye2
+            d2 = rel[:, 0] ** 2 + rel[:, 1] ** 2
+            rad = 0.5 * np.hypot(actors.size[:, 0], actors.size[:, 1]) if kind == "v" else PED_RADIUS_M
+            m = np.flatnonzero((d2 < r2) & self._in_view(rel, d2, rad, axes))
             if len(m) == 0:
                 continue
+            xy = actors.xy[m]
             if kind == "v":
-                parts.append(vehicle_faces(xy[m], actors.yaw_rad[m], actors.size[m], actors.colour[m], n_obj))
-                obj_rad.append(0.5 * np.hypot(actors.size[m, 0], actors.size[m, 1]))
+                parts.append(vehicle_faces(xy, actors.yaw_rad[m], actors.size[m], actors.colour[m], n_obj))
+                obj_rad.append(rad[m])
             else:
-                parts.append(pedestrian_faces(xy[m], actors.size[m], actors.colour[m], eye, n_obj))
-                obj_rad.append(np.full(len(m), 0.3))
-            obj_xy.append(xy[m])
+                parts.append(pedestrian_faces(xy, actors.size[m], actors.colour[m], eye, n_obj))
+                obj_rad.append(np.full(len(m), PED_RADIUS_M))
+            obj_xy.append(xy)
             n_obj += len(m)
         faces = concat(parts)
-        if len(faces.quads):  # back faces (all faces are closed boxes or billboards)
+        if n_obj:  # back faces of objects (closed boxes or billboards); walls are culled above
             q0 = faces.quads[:, 0]
             nm = faces.normals
             vis = ((eye[0] - q0[:, 0]) * nm[:, 0] + (eye[1] - q0[:, 1]) * nm[:, 1]
@@ -280,22 +302,48 @@ class Renderer:
         orad = np.concatenate(obj_rad) if obj_rad else np.zeros(0)
         return faces, oxy, orad, lamps
 
-    def _near_static(self, x: float, y: float) -> tuple[np.ndarray, np.ndarray]:
-        """Walls and ground rings that may be in view range from anywhere in the eye's grid
-        cell (ascending indices), cached per cell: the exact range test then runs on these
-        few, and its result does not depend on the cache."""
+    def _in_view(self, rel: np.ndarray, d2: np.ndarray, rad: np.ndarray | float,
+                 axes: list[tuple[float, float]]) -> np.ndarray:
+        """Which discs (centre at rel from the eye, squared distance d2, radius rad) reach into
+        the cameras' horizontal field of view (canvas margins included).
+
+        The cameras' fields of view are merged into intervals of azimuth (one for the usual
+        contiguous rig), each with its axis and half width H. A disc at distance d subtends
+        ±asin(r/d), so it is in an interval when the angle to the axis is below H + asin(r/d);
+        for H + asin(r/d) < π that is rel·axis > cos(H)·√(d² − r²) − sin(H)·r. Only the
+        vertical side planes are tested, so nothing in view is ever dropped.
+        """
+        if self._fov_all:
+            return np.ones(len(d2), bool)
+        r2 = rad * rad
+        s = np.sqrt(np.maximum(d2 - r2, 0.0))
+        out = np.zeros(len(d2), bool)
+        for (ax, ay), (ch, sh, wide) in zip(axes, self._fov_trig, strict=True):
+            out |= rel[:, 0] * ax + rel[:, 1] * ay > ch * s - sh * rad
+            out |= r2 >= d2 * wide  # the disc's angular radius reaches past ±π
+        return out
+
+    def _near_static(self, x: float, y: float) -> _Cell:
+        """Walls, signal heads and ground rings that may be in view range from anywhere in
+        the eye's grid cell (ascending indices), cached per cell: the exact range test then
+        runs on these few, and its result does not depend on the cache."""
         key = (math.floor(x / CELL_M), math.floor(y / CELL_M))
         hit = self._cells.get(key)
         if hit is None:
             sc = self.scene
             cx, cy = (key[0] + 0.5) * CELL_M, (key[1] + 0.5) * CELL_M
             reach = self.view_m + CELL_M * 0.7072  # the cell's half diagonal
-            wc, rc = sc.wall_centre, sc.ring_centre
+            wc, rc, hc = sc.wall_centre, sc.ring_centre, sc.head_xy
             walls = np.flatnonzero((wc[:, 0] - cx) ** 2 + (wc[:, 1] - cy) ** 2 < (reach + sc.wall_radius) ** 2)
             rings = np.flatnonzero((rc[:, 0] - cx) ** 2 + (rc[:, 1] - cy) ** 2 < (reach + sc.ring_radius) ** 2)
+            heads = np.flatnonzero((hc[:, 0] - cx) ** 2 + (hc[:, 1] - cy) ** 2 < reach ** 2)
+            wf = sc.walls.take(walls)
+            normal = np.ascontiguousarray(wf.normals[:, :2])
             if len(self._cells) >= 64:
                 self._cells.clear()
-            hit = self._cells[key] = (walls, rings)
+            hit = self._cells[key] = _Cell(
+                wf, wc[walls, :2].copy(), sc.wall_radius[walls], (self.view_m + sc.wall_radius[walls]) ** 2,
+                normal, (normal * wf.quads[:, 0, :2]).sum(axis=1), heads, rings)
         return hit
 
     def _shade(self, faces: Faces, eye: np.ndarray) -> np.ndarray:
@@ -340,7 +388,7 @@ class Renderer:
             ov = np.abs(_wrap(obj_az[:, None] - w_mid[None, :])) < obj_half[:, None] + w_half[None, :]
             if ov.any():
                 wn = faces.normals[wi, :2]
-                side = ((obj_xy[:, None, :] - wq[None, :, 0, :2]) * wn[None, :, :]).sum(axis=2)
+                side = obj_xy @ wn.T - (wq[:, 0, :2] * wn).sum(axis=1)  # (O, W): < 0 behind the wall
                 lower = np.where(ov & (side < 0), wall_d[None, :], -np.inf).max(axis=1)
                 upper = np.where(ov & (side >= 0), wall_d[None, :], np.inf).min(axis=1)
                 key_obj = np.minimum(np.maximum(key_obj, lower + _EPS), upper - _EPS)
@@ -357,7 +405,7 @@ class Renderer:
         rings never overlap, and later layers are drawn over earlier ones)."""
         sc = self.scene
         ex, ey, ez = eye
-        _, cand = self._near_static(ex, ey)
+        cand = self._near_static(ex, ey).rings
         cen = sc.ring_centre[cand]
         near = cand[(cen[:, 0] - ex) ** 2 + (cen[:, 1] - ey) ** 2 < (self.view_m + sc.ring_radius[cand]) ** 2]
         if len(near) == 0:
@@ -472,6 +520,20 @@ class Renderer:
 
 
 @dataclass(frozen=True)
+class _Cell:
+    """The static geometry that may be in view range from one grid cell."""
+
+    walls: Faces  # the walls, taken from the scene
+    wall_xy: np.ndarray  # (W, 2) centres
+    wall_radius: np.ndarray  # (W,)
+    wall_reach2: np.ndarray  # (W,) (view range + radius)²: a wall nearer than this is in range
+    wall_normal: np.ndarray  # (W, 2) horizontal outward normals (walls are vertical)
+    wall_plane: np.ndarray  # (W,) normal · a corner: the eye sees the wall's front when normal · eye is larger
+    heads: np.ndarray  # signal head indices
+    rings: np.ndarray  # ground ring indices
+
+
+@dataclass(frozen=True)
 class _Lamps:
     obj: np.ndarray  # (L,) object index of the lamp's signal head
     pos: np.ndarray  # (L, 3) world centre
@@ -483,6 +545,19 @@ class _Lamps:
         return _Lamps(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, bool), np.zeros((0, 3), np.int64))
 
 
+def _merge_spans(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Overlapping or touching intervals merged (angles in radians, not wrapped)."""
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(spans):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    if len(out) > 1 and out[0][0] + 2 * math.pi <= out[-1][1]:  # the last wraps round into the first
+        out = [*out[1:-1], (out[-1][0], max(out[-1][1], out[0][1] + 2 * math.pi))]
+    return out
+
+
 def _split(a: np.ndarray, offs: np.ndarray) -> list[np.ndarray]:
     """a[offs[i]:offs[i + 1]] for each i (views; much cheaper than np.split)."""
     o = offs.tolist()
@@ -490,12 +565,13 @@ def _split(a: np.ndarray, offs: np.ndarray) -> list[np.ndarray]:
 
 
 def _all4(m: np.ndarray) -> np.ndarray:
-    """All of the last axis (of size 4); faster than .all(-1) on so short an axis."""
-    return m[..., 0] & m[..., 1] & m[..., 2] & m[..., 3]
+    """All of the last axis (of size 4) of a bool array: its four bytes read as one uint32,
+    one operation instead of three."""
+    return np.ascontiguousarray(m).view(np.uint32)[..., 0] == 0x01010101
 
 
 def _any4(m: np.ndarray) -> np.ndarray:
-    return m[..., 0] | m[..., 1] | m[..., 2] | m[..., 3]
+    return np.ascontiguousarray(m).view(np.uint32)[..., 0] != 0
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
