@@ -19,7 +19,7 @@ from render_scenes import (
 from bid_sim.cli import main
 from bid_sim.errors import BidError
 from bid_sim.render import PRESETS, CameraRig, Renderer
-from bid_sim.render.camera import MARGIN_PX
+from bid_sim.render.camera import MARGIN_PX, NEAR_M, clip_near
 from bid_sim.render.pool import RenderPool
 from bid_sim.snapshot import GREEN, OFF, RED, YELLOW
 from bid_sim.town_map import load_town_map
@@ -122,6 +122,36 @@ def test_view_cull_matches_the_cameras_fields_of_view(tmap, yaws):
     assert clear_cut.sum() > 0.99 * n
     assert (got[clear_cut] == (slack[clear_cut] > 0)).all()
     assert 0 < got.sum() < n
+
+
+def test_clip_near_matches_clipping_polygon_by_polygon():
+    """The batched near-plane clip gives, polygon by polygon, what Sutherland–Hodgman gives
+    one polygon at a time: corners in front kept in order, a crossing point on each edge
+    that crosses, nothing for a polygon wholly behind."""
+    rng = np.random.default_rng(3)
+    sizes = rng.integers(3, 8, 60)
+    pts = rng.uniform(-2, 3, (int(sizes.sum()), 3))
+    pts[: sizes[0], 2] = rng.uniform(0.5, 3, sizes[0])  # one wholly in front
+    pts[sizes[0]: sizes[0] + sizes[1], 2] = rng.uniform(-2, 0, sizes[1])  # one wholly behind
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    out, offs = clip_near(pts, starts, near=NEAR_M)
+    for i in range(len(sizes)):
+        poly = pts[starts[i]:starts[i + 1]]
+        want = []
+        for a, b in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+            if a[2] >= NEAR_M:
+                want.append(a)
+            if (a[2] >= NEAR_M) != (b[2] >= NEAR_M):
+                t = (NEAR_M - a[2]) / (b[2] - a[2])
+                want.append(a + t * (b - a))
+        got = out[offs[i]:offs[i + 1]]
+        assert len(got) == len(want)
+        if want:
+            np.testing.assert_allclose(got, np.array(want), atol=1e-12)
+    assert offs[2] - offs[1] == 0 and offs[1] - offs[0] == sizes[0]
+    front = pts.copy()
+    front[:, 2] = np.abs(front[:, 2]) + 1.0
+    assert clip_near(front, starts)[0] is front  # nothing to clip: returned as is
 
 
 def test_car_beyond_view_range_is_not_drawn(clear, tmap):

@@ -113,20 +113,26 @@ def clip_near(pts: np.ndarray, starts: np.ndarray, near: float = NEAR_M) -> tupl
     n = len(pts)
     if n == 0:
         return pts, starts
-    nxt = np.arange(1, n + 1)
-    nxt[starts[1:] - 1] = starts[:-1]  # each polygon's last corner joins its first
     z = pts[:, 2]
     inside = z >= near
+    if inside.all():
+        return pts, starts
+    nxt = np.arange(1, n + 1)
+    nxt[starts[1:] - 1] = starts[:-1]  # each polygon's last corner joins its first
     cross = inside != inside[nxt]
-    b = pts[nxt]
-    dz = np.where(cross, b[:, 2] - z, 1.0)
-    t = np.where(cross, (near - z) / dz, 0.0)
-    hit = pts + t[:, None] * (b - pts)
+    ci = np.flatnonzero(cross)  # edges that cross the plane: one new point each
+    a = pts.take(ci, axis=0)  # take, not fancy indexing: several times faster on rows
+    b = pts.take(nxt[ci], axis=0)
+    hit = a + ((near - a[:, 2]) / (b[:, 2] - a[:, 2]))[:, None] * (b - a)
     hit[:, 2] = near
-    # Per corner: the corner itself if inside, then the edge's crossing point if any.
-    keep = np.stack([inside, cross], axis=1).reshape(-1)
-    out = np.stack([pts, hit], axis=1).reshape(-1, 3)[keep]
-    counts = np.add.reduceat(inside.astype(np.int64) + cross, starts[:-1])
+    # Per corner, in order: the corner itself if inside, then its edge's crossing if any.
+    emitted = inside.astype(np.int64) + cross
+    end = np.cumsum(emitted)
+    src = np.empty(int(end[-1]), np.int64)  # output point -> row of [pts; hit]
+    keep = np.flatnonzero(inside)
+    src[end[keep] - emitted[keep]] = keep
+    src[end[ci] - 1] = n + np.arange(len(ci))
+    out = np.concatenate([pts, hit]).take(src, axis=0)
     out_starts = np.zeros(len(starts), dtype=np.int64)
-    np.cumsum(counts, out=out_starts[1:])
+    np.cumsum(np.add.reduceat(emitted, starts[:-1]), out=out_starts[1:])
     return out, out_starts

@@ -98,8 +98,8 @@ class Faces:
 
     def take(self, idx: np.ndarray) -> Faces:
         """The faces at these indices (copies)."""
-        return Faces(self.quads[idx], self.normals[idx], self.colours[idx], self.obj[idx], self.sub[idx],
-                     self.centre[idx])
+        return Faces(*(a.take(idx, axis=0) for a in (self.quads, self.normals, self.colours, self.obj, self.sub,
+                                                     self.centre)))
 
 
 @dataclass(frozen=True, eq=False)

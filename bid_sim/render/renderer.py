@@ -423,25 +423,29 @@ class Renderer:
         offs = np.zeros(len(sel) + 1, np.int64)
         np.cumsum(lengths, out=offs[1:])
         vidx = np.repeat(starts - offs[:-1], lengths) + np.arange(offs[-1])
-        v = sc.ring_verts[vidx] - eye[None, :2]
+        v = sc.ring_verts.take(vidx, axis=0) - eye[None, :2]
         vc = np.repeat(cam_i, lengths)
-        r_, f_ = right[vc], fwd[vc]
+        r_, f_ = right.take(vc, axis=0), fwd.take(vc, axis=0)
         cam = np.empty((len(v), 3))
         cam[:, 0] = v[:, 0] * r_[:, 0] + v[:, 1] * r_[:, 1]
         cam[:, 1] = ez
         cam[:, 2] = v[:, 0] * f_[:, 0] + v[:, 1] * f_[:, 1]
         clock.lap("transform")
         pts, offs = clip_near(cam, offs)
-        pieces = _split(project(self.rig, pts), offs)
+        proj = project(self.rig, pts)
+        # Rings wholly behind the near plane come back empty; the others keep >= 3 corners.
+        left = np.flatnonzero(offs[1:] > offs[:-1])
+        pieces = [proj[i:j] for i, j in zip(offs.take(left).tolist(), offs.take(left + 1).tolist(), strict=True)]
         n_layers = len(GROUND_LAYERS)
-        bounds = np.searchsorted(cam_i * n_layers + sc.ring_layer[sel], np.arange(len(self._views) * n_layers + 1))
+        group = (cam_i * n_layers + sc.ring_layer[sel]).take(left)
+        bounds = np.searchsorted(group, np.arange(len(self._views) * n_layers + 1)).tolist()
         clock.lap("clip")
+        fill = cv2.fillPoly
         for c, view in enumerate(self._views):
             for k in range(n_layers):
                 g = c * n_layers + k
-                polys = [p for p in pieces[bounds[g]:bounds[g + 1]] if len(p) >= 3]
-                if polys:
-                    cv2.fillPoly(view, polys, self._ground_cols[k], cv2.LINE_8, SHIFT)
+                if bounds[g] < bounds[g + 1]:
+                    fill(view, pieces[bounds[g]:bounds[g + 1]], self._ground_cols[k], cv2.LINE_8, SHIFT)
         clock.lap("fill")
 
     # ------------------------------------------------------------------ objects
@@ -462,12 +466,13 @@ class Renderer:
             | _all4(ys - tv * zs > 0) | _all4(-ys - tv * zs > 0)
         cam_i, face_i = np.nonzero(~out)
         cam = np.empty((len(face_i), 4, 3))
-        cam[..., 0] = xs[cam_i, face_i]
-        cam[..., 1] = ys[face_i]
-        cam[..., 2] = zs[cam_i, face_i]
+        flat = cam_i * len(ys) + face_i
+        cam[..., 0] = xs.reshape(-1, 4).take(flat, axis=0)
+        cam[..., 1] = ys.take(face_i, axis=0)
+        cam[..., 2] = zs.reshape(-1, 4).take(flat, axis=0)
         zv = cam[..., 2]
         unsafe = np.flatnonzero(_any4(zv < NEAR_M))
-        raw = cam[unsafe].reshape(-1, 3)
+        raw = cam.take(unsafe, axis=0).reshape(-1, 3)
         cam[unsafe, :, 2] = NEAR_M  # placeholders, replaced by the clipped polygons below
         pts: list = list(project(rig, cam))
         if len(unsafe):
@@ -483,40 +488,50 @@ class Renderer:
         n = len(face_i)
         order = np.lexsort((-np.concatenate([keys[face_i], lamp_keys[lamp_i]]), np.concatenate([cam_i, lamp_c])))
         clock.lap("sort")
+        discs = self._lamp_discs(lx[lamp_i, lamp_c], ly[lamp_i, 0], lz[lamp_i, lamp_c], lamps, lamp_i)
         views = self._views
-        cams, fids = cam_i.tolist(), face_i.tolist()
-        f = rig.focal_px
-        fill = cv2.fillConvexPoly
+        cams, fids, lcams = cam_i.tolist(), face_i.tolist(), lamp_c.tolist()
+        fill, circle = cv2.fillConvexPoly, cv2.circle
         for i in order.tolist():
             if i < n:
                 p = pts[i]
                 if p is not None:
                     fill(views[cams[i]], p, cols[fids[i]], cv2.LINE_8, SHIFT)
             else:
-                k, c = lamp_i[i - n], lamp_c[i - n]
-                self._lamp(views[c], (lx[k, c], ly[k, 0], lz[k, c]), lamps.colour[k] if lamps.on[k] else None, f)
+                for centre, rad, col in discs[i - n]:
+                    circle(views[lcams[i - n]], centre, rad, col, -1, cv2.LINE_AA, SHIFT)
         clock.lap("fill")
 
-    def _lamp(self, canvas: np.ndarray, c: tuple[float, float, float], colour: np.ndarray | None,
-              focal: float) -> None:
-        """One lamp as a disc; a lit one gets a halo so it stays legible far away."""
-        rad = LAMP_RADIUS_M * focal / c[2]
-        if colour is None and rad < 0.7:
-            return
-        u = self.rig.cx + focal * c[0] / c[2]
-        v = self.rig.cy + focal * c[1] / c[2]
-        centre = (round(u * ONE), round(v * ONE))
-        fog = float(self.weather.fog(c[2]))
-        if colour is None:
-            col = tuple(int(a * (1 - fog) + b * fog) for a, b in zip(LAMP_OFF, self._fog_colour, strict=True))
-            cv2.circle(canvas, centre, round(max(rad, 0.7) * ONE), col, -1, cv2.LINE_AA, SHIFT)
-            return
-        fog *= 0.4  # lit lamps shine through haze
-        col = tuple(int(a * (1 - fog) + b * fog) for a, b in zip(colour.tolist(), self._fog_colour, strict=True))
-        rad = max(rad, 1.6)
-        halo = tuple(int(0.55 * a + 0.45 * 40) for a in col)
-        cv2.circle(canvas, centre, round(2.2 * rad * ONE), halo, -1, cv2.LINE_AA, SHIFT)
-        cv2.circle(canvas, centre, round(rad * ONE), col, -1, cv2.LINE_AA, SHIFT)
+    def _lamp_discs(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, lamps: _Lamps,
+                    k: np.ndarray) -> list[list[tuple[tuple[int, int], int, tuple[int, ...]]]]:
+        """Each visible lamp (camera coordinates x, y, z; lamps' rows k) as discs to draw:
+        (centre, radius, colour) in fixed point. An unlit lamp is one dark disc, left out
+        when below 0.7 px; a lit one gets a halo so it stays legible far away."""
+        if len(z) == 0:
+            return []
+        f = self.rig.focal_px
+        rad = LAMP_RADIUS_M * f / z
+        u = np.round((self.rig.cx + f * x / z) * ONE).astype(np.int64).tolist()
+        v = np.round((self.rig.cy + f * y / z) * ONE).astype(np.int64).tolist()
+        fog = self.weather.fog(z)
+        on = lamps.on[k]
+        glow = np.where(on, 0.4, 1.0) * fog  # lit lamps shine through haze
+        base = np.where(on[:, None], lamps.colour[k], np.array(LAMP_OFF)[None, :])
+        col = (base * (1 - glow[:, None]) + self._fog_colour[None, :] * glow[:, None]).astype(np.int64)
+        halo = (0.55 * col + 0.45 * 40).astype(np.int64).tolist()
+        col = col.tolist()
+        lit_rad = np.maximum(rad, 1.6)
+        r_lit = np.round(lit_rad * ONE).astype(np.int64).tolist()
+        r_halo = np.round(2.2 * lit_rad * ONE).astype(np.int64).tolist()
+        r_off = np.round(np.maximum(rad, 0.7) * ONE).astype(np.int64).tolist()
+        out = []
+        for j, (lit, big) in enumerate(zip(on.tolist(), (rad >= 0.7).tolist(), strict=True)):
+            c = (u[j], v[j])
+            if lit:
+                out.append([(c, r_halo[j], tuple(halo[j])), (c, r_lit[j], tuple(col[j]))])
+            else:
+                out.append([(c, r_off[j], tuple(col[j]))] if big else [])
+        return out
 
 
 @dataclass(frozen=True)
