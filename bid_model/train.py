@@ -620,18 +620,47 @@ def run_dir(args: argparse.Namespace, config: RunConfig | None) -> Path:
     return Path("runs") / f"{config.preset}-{config.model.variant}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def busy_cores(interval_s: float = 0.5, stat: str = "/proc/stat") -> float | None:
+    """Cores other programs keep busy now: the machine's non-idle CPU time over interval_s
+    (this process sleeps meanwhile), from /proc/stat; None where that file does not exist.
+
+    Unlike the load average, which decays over a minute, it drops as soon as a job ends:
+    `make dagger` trains right after its recording workers exit.
+    """
+    def sample() -> tuple[int, int]:
+        with open(stat) as f:
+            ticks = [int(v) for v in f.readline().split()[1:9]]  # user nice system idle iowait irq softirq steal
+        return sum(ticks), ticks[3] + ticks[4]
+
+    try:
+        total0, idle0 = sample()
+        time.sleep(interval_s)
+        total1, idle1 = sample()
+    except (OSError, ValueError, IndexError):
+        return None
+    if total1 <= total0:
+        return 0.0
+    return (os.cpu_count() or 1) * (1.0 - (idle1 - idle0) / (total1 - total0))
+
+
 def default_threads(workers: int) -> int:
     """Torch threads for training: the cores that neither data loaders nor other programs use.
 
     OpenMP threads that outnumber the free cores wait for each other at every parallel
     region: measured on 2 cores next to one busy process, one thread trained the tiny preset
-    3-5× faster than two. So count one core per loader process and the 1-minute load average.
+    3-5× faster than two. So count one core per loader process and the cores busy right now
+    (busy_cores; the 1-minute load average where /proc/stat is missing).
     """
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    busy = round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else 0
+    now = busy_cores()
+    if now is not None:
+        busy, source = round(now), f"busy now {now:.1f}"
+    else:
+        busy = round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else 0
+        source = f"load {busy}"
     threads = max(1, (cores or 1) - workers - busy)
-    log.info("torch threads: %d (%s cores, %d loaders, load %d); set --threads to override",
-             threads, cores, workers, busy)
+    log.info("torch threads: %d (%s cores, %d loaders, %s); set --threads to override",
+             threads, cores, workers, source)
     return threads
 
 

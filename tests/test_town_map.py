@@ -6,7 +6,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -103,17 +102,7 @@ def test_nearest_lanes_radius_and_speed(town_map):
     assert [f[0] for f in fast] == [f[0] for f in slow]
     far = town_map.bounds[0] - 100.0, town_map.bounds[1] - 100.0
     assert town_map.nearest_lanes(*far) == []
-    rng = np.random.default_rng(0)
-    points = []
-    for _ in range(2000):
-        ln = town_map.lanes[rng.integers(len(town_map.lanes))]
-        px, py, _ = ln.point_at(rng.uniform(0, ln.length_m()))
-        points.append((px + rng.normal(0, 1.0), py + rng.normal(0, 1.0)))
-    t0 = time.perf_counter()
-    for p in points:
-        town_map.nearest_lanes(*p)
-    per_query_s = (time.perf_counter() - t0) / len(points)
-    assert per_query_s < 200e-6  # ~20 µs measured; generous for loaded CI machines
+    # Its speed (~20 µs a query) is measured by benchmarks/bench_world.py, not asserted here.
 
 
 def test_project_round_trips_point_at(town_map):
@@ -289,9 +278,7 @@ def test_disk_cache_reused_and_invalidated(tmp_path, monkeypatch):
 
     tm._MEMO.clear()
     mtime = caches[0].stat().st_mtime_ns
-    t0 = time.perf_counter()
     again = tm.load_town_map(town)
-    assert time.perf_counter() - t0 < 0.5
     assert tm.build_count() == before + 1  # read from disk, not rebuilt
     assert caches[0].stat().st_mtime_ns == mtime
     assert footprint_digest(again) == footprint_digest(first)

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from types import SimpleNamespace
 
 import cv2
@@ -20,7 +21,7 @@ from bid_model.config import RunConfig, tiny
 from bid_model.data import synthetic_split
 from bid_model.model import BID
 from bid_model.recordings import RecordingDataset
-from bid_model.train import METRIC_COLUMNS, EpisodeShardSampler, item_episodes, train
+from bid_model.train import METRIC_COLUMNS, EpisodeShardSampler, busy_cores, item_episodes, train
 from bid_sim.cli import main as bid
 from bid_sim.errors import BidError
 
@@ -232,3 +233,21 @@ def test_init_starts_from_a_checkpoints_weights(tmp_path, capsys):
     assert bid(["train", "--preset", "tiny", "--synthetic", "--out", str(tmp_path / "e"),
                 "--init", str(tmp_path / "missing.pt")]) == 2
     assert "no checkpoint at" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="needs Linux /proc/stat")
+def test_busy_cores_counts_a_running_process_at_once(tmp_path):
+    """Training picks its torch threads from the cores busy right now, not the load average
+    (which still counts a recording that has just ended): a spinning process counts."""
+    spin = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 5: pass"])
+    try:
+        time.sleep(0.5)
+        assert busy_cores(1.0) >= 0.6
+    finally:
+        spin.kill()
+        spin.wait()
+    frozen = tmp_path / "stat"
+    frozen.write_text("cpu  100 0 50 1000 5 0 0 0 0 0\n")
+    assert busy_cores(0.01, stat=str(frozen)) == 0.0  # no ticks passed: nothing busy, no division by zero
+    assert busy_cores(0.01, stat=str(tmp_path / "missing")) is None  # the caller falls back to the load average
+
