@@ -1,6 +1,7 @@
 """Renderer: geometry (where things land in the three cameras), occlusion, lamps, weather,
 determinism, bad input, the worker pool and `bid view`."""
 
+import json
 import math
 from dataclasses import replace
 
@@ -345,6 +346,19 @@ def test_view_writes_png_and_mp4(tmp_path, capsys):
     cap = cv2.VideoCapture(str(mp4))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 8
     assert "8 frames" in capsys.readouterr().out
+
+
+def test_bench_render_prints_its_figures(capsys):
+    """`bid bench render` on a few frames: frames/s, the stage costs, the 700-vs-70 ratio and
+    the machine-speed reference, as one line and as JSON."""
+    assert main(["bench", "render", "--town", "02", "--frames", "6"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "frames/s per core" in line and "700 vs 70 vehicles" in line and "machine speed" in line
+    assert main(["bench", "render", "--town", "02", "--frames", "6", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["frames"] == 6 and res["render_fps_per_core"] > 0
+    assert set(res["stage_ms_per_frame"]) == {"transform", "clip", "sort", "fill", "effects"}
+    assert res["render_cost_ratio_700_vs_70"] > 0 and res["machine_numpy_mul_1k_us"] > 0
 
 
 def test_view_bad_output_is_one_error_line(tmp_path, capsys):
