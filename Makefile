@@ -85,9 +85,9 @@ dagger: $(STAMP)
 		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT))
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
-# training, four DAgger rounds (as the shipped checkpoint had, the last one augmented), the
+# training, five DAgger rounds (as the shipped checkpoint had, the last two augmented), the
 # Town02 NoCrash for the expert and the new BID, and the result tables. The shipped checkpoint
-# is left alone: copy runs/reproduce_dagger4/last.pt over it with `bid export` only if it
+# is left alone: copy runs/reproduce_dagger5/last.pt over it with `bid export` only if it
 # drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
@@ -96,11 +96,12 @@ reproduce: $(STAMP)
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger1/last.pt ROUND=2 DAGGER_RUN=reproduce_dagger2 DAGGER_EPOCHS=2
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger2/last.pt ROUND=3 DAGGER_RUN=reproduce_dagger3 DAGGER_EPOCHS=2
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger3/last.pt ROUND=4 DAGGER_RUN=reproduce_dagger4 DAGGER_EPOCHS=2 AUGMENT=0.8
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger4/last.pt ROUND=5 DAGGER_RUN=reproduce_dagger5 DAGGER_EPOCHS=1 AUGMENT=0.8
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_dagger4/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_dagger4/last.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_dagger5/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_dagger5/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 
