@@ -267,6 +267,10 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
         bar.update(1)
         bar.set_postfix(steps_per_s=f"{steps / max(time.perf_counter() - t0, 1e-9):.0f}")
 
+    if todo:
+        from bid_sim.town_map import load_town_map
+
+        load_town_map(resolve_town(town))  # built once here, not by every worker at once
     try:
         if ray_address is None:
             run_parallel(partial(run_eval_episode, out=str(out), record=record, video=video, max_steps=max_steps),

@@ -12,6 +12,7 @@ import logging
 import os
 import re
 import subprocess
+import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -161,14 +162,20 @@ def build_net(town: Town) -> Path:
         files = [str(p) for p in sources if p.name.endswith(suffix)]
         if files:
             args += [flag, ",".join(files)]
-    tmp = net.with_suffix(".tmp.xml")
+    # A temporary name of its own: parallel workers that find no net build it side by side.
+    fd, tmp_name = tempfile.mkstemp(dir=out_dir, prefix=f".{net.stem}.", suffix=".tmp.xml")
+    os.close(fd)
+    tmp = Path(tmp_name)
     args += [*NETCONVERT_OPTIONS, "--output-file", str(tmp), "--no-warnings", "true"]
     log.info("netconvert %s", town.name)
-    proc = subprocess.run(args, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        first = (proc.stderr.strip().splitlines() or ["no output"])[0]
-        raise BidError(f"netconvert failed on {town.folder}: {first}; fix the plain XML")
-    os.replace(tmp, net)  # atomic: a half-written net is never picked up
+    try:
+        proc = subprocess.run(args, capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            first = (proc.stderr.strip().splitlines() or ["no output"])[0]
+            raise BidError(f"netconvert failed on {town.folder}: {first}; fix the plain XML")
+        os.replace(tmp, net)  # atomic: a half-written net is never picked up
+    finally:
+        tmp.unlink(missing_ok=True)
     stamp.write_text(tag)
     return net
 

@@ -106,3 +106,18 @@ def test_broken_plain_xml_is_a_bid_error(tmp_path, monkeypatch):
     with pytest.raises(BidError, match="netconvert failed"):
         _ = resolve_town(tmp_path).net_file
     assert not list((tmp_path / "build").rglob("*.net.xml"))
+
+
+def test_workers_that_build_a_missing_net_at_once_all_get_it(tmp_path, monkeypatch):
+    """Evaluation and recording workers on a fresh clone each find no net and build it."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from bid_sim import towns
+
+    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+    town = resolve_town("02")
+    with ThreadPoolExecutor(3) as pool:
+        nets = list(pool.map(lambda _: towns.build_net(town), range(3)))
+    assert len(set(nets)) == 1 and nets[0].parent == tmp_path / "build" / town.folder.name
+    assert describe_town(resolve_town(nets[0].parent))["signalised"] == 8
+    assert sorted(p.name for p in nets[0].parent.iterdir()) == ["net.sha", nets[0].name]  # no temporaries left
