@@ -90,6 +90,40 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
     return card
 
 
+def average_checkpoints(paths: list[str | Path], out: str | Path,
+                        weights: list[float] | None = None) -> dict[str, Any]:
+    """Writes to `out` the weighted average of the weights of checkpoints of one network
+    (weight-space ensembling, as WiSE-FT and model soups: fine-tunings of the same start
+    average into one model that keeps what each learnt). Integer buffers (batch counts) come
+    from the first. Returns the checkpoint written; its `init` names the sources and weights."""
+    if len(paths) < 2:
+        raise BidError("give two or more checkpoints to average")
+    weights = [1.0] * len(paths) if weights is None else [float(w) for w in weights]
+    if len(weights) != len(paths) or min(weights) < 0 or sum(weights) <= 0:
+        raise BidError(f"--weights needs {len(paths)} numbers >= 0 with a positive sum, got {weights}")
+    weights = [w / sum(weights) for w in weights]
+    ckpts = [load_checkpoint(p) for p in paths]
+    first = ckpts[0]
+    for p, c in zip(paths[1:], ckpts[1:], strict=True):
+        if c["config"].get("model") != first["config"].get("model") or c["model"].keys() != first["model"].keys():
+            raise BidError(f"{p} is another network than {paths[0]} (model config or weights differ); "
+                           "average only fine-tunings of one model")
+    state = {}
+    for key, t0 in first["model"].items():
+        if t0.is_floating_point():
+            state[key] = sum(w * c["model"][key].double() for w, c in zip(weights, ckpts, strict=True)).to(t0.dtype)
+        else:
+            state[key] = t0.clone()
+    payload = {k: first[k] for k in SHIPPED_KEYS if k in first and k not in ("model", "init")}
+    payload.update(model=state, history=[], best_val_loss=math.inf, git_hash=git_hash(),
+                   init={"average": [{"path": str(p), "weight": w, "epoch": c.get("epoch"), "git_hash": c.get("git_hash")}
+                                     for p, w, c in zip(paths, weights, ckpts, strict=True)]})
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out, payload)
+    return payload
+
+
 def check_preset(config: RunConfig, preset: str | None, path: str | Path) -> None:
     """BidError if the checkpoint's preset is not the one asked for."""
     if preset is not None and preset != config.preset:

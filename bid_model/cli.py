@@ -84,6 +84,20 @@ def _export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _average(args: argparse.Namespace) -> int:
+    from bid_model.checkpoint import average_checkpoints
+    from bid_sim.errors import BidError
+
+    try:
+        weights = [float(w) for w in args.weights.split(",")] if args.weights else None
+    except ValueError:
+        raise BidError(f"--weights takes comma-separated numbers, got {args.weights!r}") from None
+    payload = average_checkpoints(args.checkpoints, args.out, weights)
+    parts = ", ".join(f"{a['weight']:.2f} x {a['path']}" for a in payload["init"]["average"])
+    print(f"{args.out}: {parts}")
+    return 0
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:
     """Add the model's subcommands (train, gradcam) to the `bid` parser."""
     t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
@@ -110,6 +124,13 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--which", default="best.pt", help="best.pt (default) or last.pt")
     x.add_argument("--recipe", default=None, help="how the data and the run were made (commands)")
     x.set_defaults(func=_export)
+
+    av = sub.add_parser("average", help="one checkpoint whose weights are the average of fine-tunings of "
+                                        "one model (weight-space ensemble)")
+    av.add_argument("checkpoints", nargs="+", help="two or more checkpoints of the same network")
+    av.add_argument("--weights", default=None, help="comma-separated, one per checkpoint (default: equal)")
+    av.add_argument("--out", required=True, help="the .pt to write (e.g. runs/NAME/last.pt, for `bid export`)")
+    av.set_defaults(func=_average)
 
     le = sub.add_parser("lesion", help="closed-loop benchmark with each brain area switched off in turn")
     le.add_argument("--checkpoint", required=True)

@@ -251,3 +251,40 @@ def test_busy_cores_counts_a_running_process_at_once(tmp_path):
     assert busy_cores(0.01, stat=str(frozen)) == 0.0  # no ticks passed: nothing busy, no division by zero
     assert busy_cores(0.01, stat=str(tmp_path / "missing")) is None  # the caller falls back to the load average
 
+
+
+def test_bid_average_is_the_weighted_mean_of_two_fine_tunings(tmp_path, capsys):
+    first = quick_run(1)
+    train(tmp_path / "a", first, synthetic=True, progress=False)
+    train(tmp_path / "b", RunConfig(first.model, dataclasses.replace(first.train, seed=1)), synthetic=True,
+          progress=False)
+    a, b = (load_checkpoint(tmp_path / n / "last.pt")["model"] for n in "ab")
+    out = tmp_path / "soup" / "last.pt"
+    assert bid(["average", str(tmp_path / "a" / "last.pt"), str(tmp_path / "b" / "last.pt"),
+                "--weights", "1,3", "--out", str(out)]) == 0
+    soup = load_checkpoint(out)
+    floats = [k for k, v in a.items() if v.is_floating_point()]
+    assert floats and any(not torch.equal(a[k], b[k]) for k in floats)
+    for k in floats:
+        torch.testing.assert_close(soup["model"][k], 0.25 * a[k] + 0.75 * b[k], msg=k)
+    assert all(torch.equal(soup["model"][k], a[k]) for k in a if k not in floats)  # batch counts
+    assert [s["weight"] for s in soup["init"]["average"]] == [0.25, 0.75]
+    model, _ = load_model(out, preset="tiny")
+    h, w = first.model.frame_hw
+    frames = torch.randint(0, 255, (2, 3, h, w), dtype=torch.uint8)
+    speed = torch.full((2,), 5.0) if first.model.speed_input else None
+    steer_accel = model(frames, frames, torch.eye(6)[[3, 0]], speed)
+    assert steer_accel.shape == (2, 2) and torch.isfinite(steer_accel).all()
+    assert bid(["export", str(out.parent), "--which", "last.pt", "--out", str(tmp_path / "soup.pt")]) == 0
+    # Another network, a lone checkpoint or bad weights: one line, exit 2.
+    other = RunConfig(dataclasses.replace(first.model, speed_input=True), first.train)
+    train(tmp_path / "c", other, synthetic=True, progress=False)
+    capsys.readouterr()
+    for argv, says in (([str(tmp_path / "a" / "last.pt"), str(tmp_path / "c" / "last.pt")], "another network"),
+                       ([str(tmp_path / "a" / "last.pt")], "two or more"),
+                       ([str(tmp_path / "a" / "last.pt"), str(tmp_path / "b" / "last.pt"), "--weights", "1"],
+                        "--weights needs 2 numbers")):
+        assert bid(["average", *argv, "--out", str(tmp_path / "x.pt")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and says in err[0], err
+    assert not (tmp_path / "x.pt").exists()
