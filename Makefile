@@ -23,8 +23,9 @@ WEATHERS ?= test
 SEEDS ?= 3
 
 # A DAgger round: which checkpoint drives, the round's number (its routes' seed) and its
-# fine-tuning epochs (the shipped BID had 3 in round 1, 2 in each round after) and the share
-# of samples given a random lighting change (the shipped BID: 0.8 in round 4, none before).
+# fine-tuning epochs (the shipped BID had 3 in round 1, 2 in rounds 2-4 and 6, 1 in round 5)
+# and the share of samples given a random lighting change (the shipped BID: 0.8 from round 4
+# on, none before).
 STUDENT ?= runs/small/best.pt
 ROUND ?= 1
 DAGGER_RUN ?= small_dagger$(ROUND)
@@ -85,10 +86,10 @@ dagger: $(STAMP)
 		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT))
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
-# training, five DAgger rounds (as the shipped checkpoint had, the last two augmented), the
-# Town02 NoCrash for the expert and the new BID, and the result tables. The shipped checkpoint
-# is left alone: copy runs/reproduce_dagger5/last.pt over it with `bid export` only if it
-# drives better.
+# training, six DAgger rounds (as the shipped checkpoint had, the last three augmented), the
+# weight average of the fifth and sixth (what is shipped), the Town02 NoCrash for the expert
+# and the new BID, and the result tables. The shipped checkpoint is left alone: copy
+# runs/reproduce_soup56/last.pt over it with `bid export` only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
@@ -97,11 +98,15 @@ reproduce: $(STAMP)
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger2/last.pt ROUND=3 DAGGER_RUN=reproduce_dagger3 DAGGER_EPOCHS=2
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger3/last.pt ROUND=4 DAGGER_RUN=reproduce_dagger4 DAGGER_EPOCHS=2 AUGMENT=0.8
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger4/last.pt ROUND=5 DAGGER_RUN=reproduce_dagger5 DAGGER_EPOCHS=1 AUGMENT=0.8
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger5/last.pt ROUND=6 DAGGER_RUN=reproduce_dagger6 DAGGER_EPOCHS=2 AUGMENT=0.8 \
+		EPISODES=96
+	$(if $(wildcard runs/reproduce_soup56/last.pt),,$(BID) average runs/reproduce_dagger5/last.pt \
+		runs/reproduce_dagger6/last.pt --out runs/reproduce_soup56/last.pt)
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_dagger5/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_dagger5/last.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_soup56/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_soup56/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 

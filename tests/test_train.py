@@ -252,7 +252,6 @@ def test_busy_cores_counts_a_running_process_at_once(tmp_path):
     assert busy_cores(0.01, stat=str(tmp_path / "missing")) is None  # the caller falls back to the load average
 
 
-
 def test_bid_average_is_the_weighted_mean_of_two_fine_tunings(tmp_path, capsys):
     first = quick_run(1)
     train(tmp_path / "a", first, synthetic=True, progress=False)
