@@ -99,7 +99,7 @@ def _average(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    """Add the model's subcommands (train, gradcam) to the `bid` parser."""
+    """Add the model's subcommands (train, gradcam, export, average, lesion) to the `bid` parser."""
     t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
                                      "checkpoints and plots)")
     add_train_arguments(t)
