@@ -114,7 +114,7 @@ def average_checkpoints(paths: list[str | Path], out: str | Path,
             state[key] = sum(w * c["model"][key].double() for w, c in zip(weights, ckpts, strict=True)).to(t0.dtype)
         else:
             state[key] = t0.clone()
-    payload = {k: first[k] for k in SHIPPED_KEYS if k in first and k not in ("model", "init")}
+    payload = {k: first[k] for k in SHIPPED_KEYS if k in first}
     payload.update(model=state, history=[], best_val_loss=math.inf, git_hash=git_hash(),
                    init={"average": [{"path": str(p), "weight": w, "epoch": c.get("epoch"), "git_hash": c.get("git_hash")}
                                      for p, w, c in zip(paths, weights, ckpts, strict=True)]})
