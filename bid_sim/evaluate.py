@@ -212,6 +212,8 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
              progress: bool = True, options: dict | None = None, max_steps: int | None = None,
              ray_address: str | None = None) -> dict:
     """Runs the plan's unfinished episodes, appending to episodes.jsonl; writes the summary.
+    An episode that fails (a SUMO error, an agent's exception) does not stop the others; once
+    they are done, a BidError names it and no summary is written, so a rerun retries it.
     video: True films every episode, a number N the plan's first N.
     max_steps cuts episodes short (a smoke run: they end as timeouts).
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
@@ -267,6 +269,13 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
         bar.update(1)
         bar.set_postfix(steps_per_s=f"{steps / max(time.perf_counter() - t0, 1e-9):.0f}")
 
+    failed: list[tuple[str, str]] = []
+
+    def broke(ep: EvalEpisode, e: Exception) -> None:  # the other episodes go on
+        reason = str(e) if isinstance(e, BidError) else f"{type(e).__name__}: {e}"
+        failed.append((ep.key, (reason.strip().splitlines() or [""])[0]))
+        bar.update(1)
+
     if todo:
         from bid_sim.town_map import load_town_map
 
@@ -274,18 +283,24 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     try:
         if ray_address is None:
             run_parallel(partial(run_eval_episode, out=str(out), record=record, video=video, max_steps=max_steps),
-                         todo, workers, lambda ep, line: finished(line), initializer=_init_worker,
-                         initargs=(agent, checkpoint, options))
+                         todo, workers, lambda ep, line: finished(line), on_error=broke,
+                         initializer=_init_worker, initargs=(agent, checkpoint, options))
         else:
             from bid_sim.cluster import run_ray
 
             run_ray(partial(run_eval_episode, out=str(out.resolve()), record=record, video=video,
                             max_steps=max_steps),
-                    todo, ray_address, lambda ep, line: finished(line), initializer=_init_worker,
+                    todo, ray_address, lambda ep, line: finished(line), on_error=broke,
+                    initializer=_init_worker,
                     initargs=(agent, str(Path(checkpoint).resolve()) if checkpoint else None, options),
                     shared=out if record or video else None)  # only files need a shared --out
     finally:
         bar.close()
+    if failed:
+        key, reason = failed[0]
+        more = f" and {len(failed) - 1} more" if len(failed) > 1 else ""
+        raise BidError(f"episode {key}{more} failed ({reason}); the finished ones ({len(done)}) are kept "
+                       f"in {lines_path}; rerun the same command to retry the rest")
     ordered = [done[ep.key] for ep in plan]
     summary = summarise(ordered, config)
     (out / "summary.json").write_text(json.dumps(summary, indent=1))

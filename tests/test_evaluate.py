@@ -106,3 +106,35 @@ def test_video_of_the_first_episodes_only(tmp_path):
     run = {**RUN, "routes": [0, 3], "max_steps": 8}
     evaluate(out=tmp_path / "v", workers=1, video=1, **run)
     assert [p.name for p in (tmp_path / "v" / "videos").glob("*.mp4")] == ["none_WetSunset_r00_s0.mp4"]
+
+
+class BrokenOnRoute3:
+    """A user's agent with a bug that shows on one route only."""
+
+    def __init__(self):
+        from bid_sim.agents import LaneFollower
+
+        self.inner = LaneFollower()
+
+    def reset(self, info):
+        self.route_index = info.route_index
+        self.inner.reset(info)
+
+    def act(self, obs):
+        if self.route_index == 3:
+            raise ZeroDivisionError("division by zero\nsecond line")
+        return self.inner.act(obs)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failing_episode_ends_the_run_with_one_line_and_keeps_the_others(workers, tmp_path, capsys):
+    out = tmp_path / "r"
+    args = ["evaluate", "--town", "02", "--density", "none", "--weathers", "WetSunset", "--seeds", "1",
+            "--routes", "3,0", "--agent", "test_evaluate:BrokenOnRoute3", "--max-steps", "20",
+            "--workers", str(workers), "--out", str(out)]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # after the progress bar
+    assert err == (f"error: episode none/WetSunset/r03/s0 failed (ZeroDivisionError: division by zero); the finished "
+                   f"ones (1) are kept in {out / 'episodes.jsonl'}; rerun the same command to retry the rest")
+    assert [ln["key"] for ln in read_lines(out / "episodes.jsonl")] == ["none/WetSunset/r00/s0"]
+    assert not (out / "summary.json").exists()
