@@ -88,6 +88,7 @@ class TrainConfig:
     val_fraction: float = 0.1
     stop_keep: float = 1.0  # share of standing, braking frames trained on (recordings.balance_rows)
     start_repeat: int = 1  # times each moving-off frame is trained on
+    hard_repeat: int = 1  # times each frame of hard steering or braking while moving is trained on
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     seed: int = 0

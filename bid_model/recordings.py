@@ -194,10 +194,12 @@ STOPPED_MPS = 0.1  # below this the ego stands
 START_MPS = 2.0  # below this, with throttle, it is moving off
 GO_LOOKAHEAD = 10  # standing frames this close before a start are kept: the cue to go is in them
 STANDING_STEER_MAX = 0.5  # standing frames that steer harder say nothing (see balance_rows)
+HARD_STEER = 0.25  # |steer| from which a moving frame is a hard one (a turn, a sharp bend)
+HARD_BRAKE = -0.2  # accel up to which a moving frame is a hard one (slowing for a bend, a car)
 
 
 def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
-                 start_repeat: int) -> tuple[np.ndarray, np.ndarray]:
+                 start_repeat: int, hard_repeat: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Training rows rebalanced against the stop/go imbalance of driving data, and which of
     them to show as standing still.
 
@@ -211,11 +213,17 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     throttle) `start_repeat` times, the repeats shown standing still (frame t−1 = frame t,
     speed 0) with the expert's throttle as the label. Standing frames that steer by more than
     STANDING_STEER_MAX are dropped: at a standstill the wheel turns nothing, and such labels
-    come from a car stranded off its route (the expert at full lock, braking). Returns
-    (rows, still), sorted.
+    come from a car stranded off its route (the expert at full lock, braking).
+
+    Driving also cruises: in Town01 about one moving frame in ten steers by HARD_STEER or
+    more or brakes by HARD_BRAKE or more, and in LANEFOLLOW (a bend with no junction) one in
+    twenty. An L1 fit gives such rare labels little say, and the car takes a 90° bend at
+    cruising speed with half the lock it needs. Each of those frames (moving at START_MPS or
+    more) is trained on `hard_repeat` times. Returns (rows, still), sorted.
     """
-    if not 0.0 < stop_keep <= 1.0 or start_repeat < 1:
-        raise BidError(f"stop_keep must be in (0, 1] and start_repeat >= 1, got {stop_keep}, {start_repeat}")
+    if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1:
+        raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat >= 1, got {stop_keep}, "
+                       f"{start_repeat}, {hard_repeat}")
     rows = np.asarray(rows, dtype=np.int64)
     standing = (index.speed < STOPPED_MPS) & (index.accel <= 0.0)
     starting = (index.speed < START_MPS) & (index.accel > 0.0)
@@ -230,10 +238,16 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     keep &= ~((index.speed[rows] < STOPPED_MPS) & (np.abs(index.steer[rows]) > STANDING_STEER_MAX))
     kept = rows[keep]
     repeats = np.repeat(kept[starting[kept]], start_repeat - 1)
-    all_rows = np.r_[kept, repeats]
-    still = np.r_[np.zeros(len(kept), dtype=bool), np.ones(len(repeats), dtype=bool)]
+    hard_repeats = np.repeat(kept[hard_frames(index)[kept]], hard_repeat - 1)
+    all_rows = np.r_[kept, hard_repeats, repeats]
+    still = np.r_[np.zeros(len(kept) + len(hard_repeats), dtype=bool), np.ones(len(repeats), dtype=bool)]
     order = np.lexsort((still, all_rows))
     return all_rows[order], still[order]
+
+
+def hard_frames(index: _Index) -> np.ndarray:
+    """Which frames steer or brake hard while moving (see balance_rows)."""
+    return (index.speed >= START_MPS) & ((np.abs(index.steer) >= HARD_STEER) | (index.accel <= HARD_BRAKE))
 
 
 def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
@@ -253,10 +267,10 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
 
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
-                    motion_drop: float = 0.0) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    motion_drop: float = 0.0, hard_repeat: int = 1) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
-    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat)` and a share
+    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat)` and a share
     `motion_drop` of them shown without motion (`motion_dropout`); the validation set keeps
     every frame as recorded, so its errors stay those of real driving.
     """
@@ -277,7 +291,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     train_eps, val_eps = split_episodes(range(len(files)), val_fraction, seed)
     is_val = np.isin(index.episode, val_eps)
     train_rows = np.flatnonzero(~is_val)
-    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat)
+    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat)
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed))
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
@@ -288,6 +302,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "folder": str(folder), "recordings": len(files), "skipped_partial": [str(p) for p in partial],
         "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
         "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
+        "hard_repeat": hard_repeat, "train_hard_frames": int(hard_frames(index)[balanced].sum()),
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,
         "train_shown_motionless": int(train.motionless.sum()),
         "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),

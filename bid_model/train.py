@@ -109,7 +109,7 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                        "train on --synthetic") from e
     train_set, val_set, description = open_recordings(folder, hw, tc.val_fraction, tc.seed,
                                                       stop_keep=tc.stop_keep, start_repeat=tc.start_repeat,
-                                                      motion_drop=tc.motion_drop)
+                                                      motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -577,7 +577,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     """The run config the flags ask for; None with --resume (the saved config is used)."""
     flags = {"--variant": args.variant, "--epochs": args.epochs, "--batch-size": args.batch_size,
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
-             "--speed-input": args.speed_input, "--augment": args.augment}
+             "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -593,7 +593,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         tc = tc.with_epochs(args.epochs)
     for flag, value, field, ok in (("--batch-size", args.batch_size, "batch_size", 2),
                                    ("--samples", args.samples, "synthetic_samples", 4),
-                                   ("--seed", args.seed, "seed", 0)):
+                                   ("--seed", args.seed, "seed", 0),
+                                   ("--hard-repeat", args.hard_repeat, "hard_repeat", 1)):
         if value is not None:
             if value < ok:
                 raise BidError(f"{flag} must be at least {ok}, got {value}")

@@ -104,6 +104,25 @@ def test_balance_drops_standing_frames_at_full_lock():
     assert list(rows) == [5, 6, 7, *range(20, 30)]  # steering while moving is kept
 
 
+def test_hard_steering_and_braking_frames_are_repeated_while_moving():
+    import numpy as np
+
+    from bid_model.recordings import balance_rows
+
+    # Cruising, then a bend: braking into it, steering through it; then standing at full lock.
+    speed = [10.0] * 10 + [9.0] * 5 + [6.0] * 5 + [0.0] * 5
+    accel = [0.1] * 10 + [-0.5] * 5 + [0.0] * 5 + [-1.0] * 5
+    ix = _fake_index(speed, accel, [0] * 25)
+    ix.steer[15:20] = 0.8
+    ix.steer[20:25] = 0.3  # standing: the wheel turns nothing, not a hard frame
+    rows, still = balance_rows(ix, np.arange(25), 1.0, 1, hard_repeat=3)
+    counts = np.bincount(rows, minlength=25)
+    assert list(counts) == [1] * 10 + [3] * 10 + [1] * 5 and not still.any()
+    assert list(balance_rows(ix, np.arange(25), 1.0, 1)[0]) == list(range(25))  # off: unchanged
+    with pytest.raises(BidError, match="hard_repeat"):
+        balance_rows(ix, np.arange(25), 1.0, 1, hard_repeat=0)
+
+
 def test_repeated_starts_are_shown_standing_still(recorded):
     train, _, desc = open_recordings(recorded, (48, 144), 0.5, 0, stop_keep=0.5, start_repeat=2)
     assert desc["train_shown_still"] == train.still.sum() > 0
