@@ -31,6 +31,8 @@ ROUND ?= 1
 DAGGER_RUN ?= small_dagger$(ROUND)
 DAGGER_EPOCHS ?= 3
 AUGMENT ?= 0
+# Times each frame of hard steering or braking is trained on (the shipped BID: 3 in round 7).
+HARD_REPEAT ?= 1
 
 .PHONY: demo test bench towns clean lint record evaluate train dagger reproduce
 
@@ -83,13 +85,15 @@ dagger: $(STAMP)
 	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) --workers $(WORKERS) \
 		--out data/town01/dagger$(ROUND)
 	$(BID) train --preset small --data data/town01 --name $(DAGGER_RUN) \
-		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT))
+		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT) \
+		--hard-repeat $(HARD_REPEAT))
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
 # training, six DAgger rounds (as the shipped checkpoint had, the last three augmented), the
-# weight average of the fifth and sixth (what is shipped), the Town02 NoCrash for the expert
-# and the new BID, and the result tables. The shipped checkpoint is left alone: copy
-# runs/reproduce_soup56/last.pt over it with `bid export` only if it drives better.
+# weight average of the fifth and sixth, a seventh round from it with hard frames repeated
+# (what is shipped), the Town02 NoCrash for the expert and the new BID, and the result
+# tables. The shipped checkpoint is left alone: copy runs/reproduce_dagger7/last.pt over it
+# with `bid export` only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
@@ -102,11 +106,13 @@ reproduce: $(STAMP)
 		EPISODES=96
 	$(if $(wildcard runs/reproduce_soup56/last.pt),,$(BID) average runs/reproduce_dagger5/last.pt \
 		runs/reproduce_dagger6/last.pt --out runs/reproduce_soup56/last.pt)
+	$(MAKE) dagger STUDENT=runs/reproduce_soup56/last.pt ROUND=7 DAGGER_RUN=reproduce_dagger7 DAGGER_EPOCHS=1 \
+		AUGMENT=0.8 HARD_REPEAT=3 EPISODES=96
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_soup56/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_soup56/last.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_dagger7/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_dagger7/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 

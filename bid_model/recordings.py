@@ -215,11 +215,12 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     STANDING_STEER_MAX are dropped: at a standstill the wheel turns nothing, and such labels
     come from a car stranded off its route (the expert at full lock, braking).
 
-    Driving also cruises: in Town01 about one moving frame in ten steers by HARD_STEER or
-    more or brakes by HARD_BRAKE or more, and in LANEFOLLOW (a bend with no junction) one in
-    twenty. An L1 fit gives such rare labels little say, and the car takes a 90° bend at
-    cruising speed with half the lock it needs. Each of those frames (moving at START_MPS or
-    more) is trained on `hard_repeat` times. Returns (rows, still), sorted.
+    Driving also cruises: in Town01 about one moving frame in five steers by HARD_STEER or
+    more or brakes by HARD_BRAKE or more, mostly in junction turns, and one in thirteen in
+    LANEFOLLOW, where a 90° bend of the town's corner has no junction. An L1 fit gives such
+    rare labels little say, and the car takes the bend at cruising speed with a third of the
+    lock it needs. Each of those frames (moving at START_MPS or more) is trained on
+    `hard_repeat` times. Returns (rows, still), sorted.
     """
     if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1:
         raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat >= 1, got {stop_keep}, "
