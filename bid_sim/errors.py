@@ -6,3 +6,9 @@ class BidError(Exception):
 
     The CLI prints it as ``error: <message>`` and exits with status 2.
     """
+
+
+def reason(e: BaseException) -> str:
+    """Why a task failed, for a list of failures: a BidError's message as it is, anything
+    else (a bug, a crashed worker) with its type."""
+    return str(e) if isinstance(e, BidError) else f"{type(e).__name__}: {e}"

@@ -35,7 +35,7 @@ from tqdm import tqdm
 from bid_sim import __version__
 from bid_sim import metrics as m
 from bid_sim.agents import AGENTS, make_agent
-from bid_sim.errors import BidError
+from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
 from bid_sim.routes import load_routes
 from bid_sim.towns import resolve_town
@@ -272,8 +272,7 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     failed: list[tuple[str, str]] = []
 
     def broke(ep: EvalEpisode, e: Exception) -> None:  # the other episodes go on
-        reason = str(e) if isinstance(e, BidError) else f"{type(e).__name__}: {e}"
-        failed.append((ep.key, (reason.strip().splitlines() or [""])[0]))
+        failed.append((ep.key, (reason(e).strip().splitlines() or [""])[0]))
         bar.update(1)
 
     if todo:
@@ -297,9 +296,9 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     finally:
         bar.close()
     if failed:
-        key, reason = failed[0]
+        key, why = failed[0]
         more = f" and {len(failed) - 1} more" if len(failed) > 1 else ""
-        raise BidError(f"episode {key}{more} failed ({reason}); the finished ones ({len(done)}) are kept "
+        raise BidError(f"episode {key}{more} failed ({why}); the finished ones ({len(done)}) are kept "
                        f"in {lines_path}; rerun the same command to retry the rest")
     ordered = [done[ep.key] for ep in plan]
     summary = summarise(ordered, config)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from bid_sim import __version__
 from bid_sim.agents import make_agent
-from bid_sim.errors import BidError
+from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
 from bid_sim.perturb import Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path
@@ -169,13 +169,13 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
     try:
         if ray_address is None:
             run_parallel(partial(record_episode, out=out), todo, workers, lambda spec, summary: finished(summary),
-                         on_error=lambda spec, e: failed.append((spec.name, _reason(e))))
+                         on_error=lambda spec, e: failed.append((spec.name, reason(e))))
         else:
             from bid_sim.cluster import run_ray
 
             run_ray(partial(record_episode, out=out.resolve()), todo, ray_address,
                     lambda spec, summary: finished(summary),
-                    on_error=lambda spec, e: failed.append((spec.name, _reason(e))), shared=out)
+                    on_error=lambda spec, e: failed.append((spec.name, reason(e))), shared=out)
     finally:
         bar.close()
     wall = time.perf_counter() - t0
@@ -185,10 +185,6 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
             "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})},
             **({"student_share": round(sum(d["student_share"] for d in done) / len(done), 3)}
                if dagger and done else {})}
-
-
-def _reason(e: Exception) -> str:
-    return str(e) if isinstance(e, BidError) else f"{type(e).__name__}: {e}"
 
 
 def describe(summary: dict) -> str:
