@@ -29,6 +29,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="share of training samples given a random lighting change (bid_model/augment.py)")
     p.add_argument("--hard-repeat", type=int, default=None, metavar="N",
                    help="train on each frame of hard steering or braking N times (recordings.balance_rows)")
+    p.add_argument("--hard-brake", action=argparse.BooleanOptionalAction, default=None,
+                   help="with --hard-repeat, whether hard braking frames are repeated too (default yes)")
     p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the measured speed to the network (off in paper, on in small)")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")

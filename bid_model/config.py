@@ -89,6 +89,7 @@ class TrainConfig:
     stop_keep: float = 1.0  # share of standing, braking frames trained on (recordings.balance_rows)
     start_repeat: int = 1  # times each moving-off frame is trained on
     hard_repeat: int = 1  # times each frame of hard steering or braking while moving is trained on
+    hard_brake: bool = True  # whether hard braking counts as hard (else only steering)
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     seed: int = 0

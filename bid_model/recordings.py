@@ -199,7 +199,7 @@ HARD_BRAKE = -0.2  # accel up to which a moving frame is a hard one (slowing for
 
 
 def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
-                 start_repeat: int, hard_repeat: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                 start_repeat: int, hard_repeat: int = 1, hard_brake: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Training rows rebalanced against the stop/go imbalance of driving data, and which of
     them to show as standing still.
 
@@ -220,7 +220,9 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     LANEFOLLOW, where a 90° bend of the town's corner has no junction. An L1 fit gives such
     rare labels little say, and the car takes the bend at cruising speed with a third of the
     lock it needs. Each of those frames (moving at START_MPS or more) is trained on
-    `hard_repeat` times. Returns (rows, still), sorted.
+    `hard_repeat` times. With `hard_brake` False only the steering ones are: repeated braking
+    teaches a fine-tuned network to brake before every bend it sees, down to a standstill in
+    front of Town02's corners (DAgger round 8). Returns (rows, still), sorted.
     """
     if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1:
         raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat >= 1, got {stop_keep}, "
@@ -239,16 +241,19 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     keep &= ~((index.speed[rows] < STOPPED_MPS) & (np.abs(index.steer[rows]) > STANDING_STEER_MAX))
     kept = rows[keep]
     repeats = np.repeat(kept[starting[kept]], start_repeat - 1)
-    hard_repeats = np.repeat(kept[hard_frames(index)[kept]], hard_repeat - 1)
+    hard_repeats = np.repeat(kept[hard_frames(index, hard_brake)[kept]], hard_repeat - 1)
     all_rows = np.r_[kept, hard_repeats, repeats]
     still = np.r_[np.zeros(len(kept) + len(hard_repeats), dtype=bool), np.ones(len(repeats), dtype=bool)]
     order = np.lexsort((still, all_rows))
     return all_rows[order], still[order]
 
 
-def hard_frames(index: _Index) -> np.ndarray:
-    """Which frames steer or brake hard while moving (see balance_rows)."""
-    return (index.speed >= START_MPS) & ((np.abs(index.steer) >= HARD_STEER) | (index.accel <= HARD_BRAKE))
+def hard_frames(index: _Index, brake: bool = True) -> np.ndarray:
+    """Which frames steer (or, with `brake`, brake) hard while moving (see balance_rows)."""
+    hard = np.abs(index.steer) >= HARD_STEER
+    if brake:
+        hard |= index.accel <= HARD_BRAKE
+    return (index.speed >= START_MPS) & hard
 
 
 def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
@@ -268,10 +273,11 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
 
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
-                    motion_drop: float = 0.0, hard_repeat: int = 1) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    motion_drop: float = 0.0, hard_repeat: int = 1,
+                    hard_brake: bool = True) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
-    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat)` and a share
+    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake)` and a share
     `motion_drop` of them shown without motion (`motion_dropout`); the validation set keeps
     every frame as recorded, so its errors stay those of real driving.
     """
@@ -292,7 +298,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     train_eps, val_eps = split_episodes(range(len(files)), val_fraction, seed)
     is_val = np.isin(index.episode, val_eps)
     train_rows = np.flatnonzero(~is_val)
-    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat)
+    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake)
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed))
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
@@ -303,7 +309,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "folder": str(folder), "recordings": len(files), "skipped_partial": [str(p) for p in partial],
         "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
         "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
-        "hard_repeat": hard_repeat, "train_hard_frames": int(hard_frames(index)[balanced].sum()),
+        "hard_repeat": hard_repeat, "hard_brake": hard_brake,
+        "train_hard_frames": int(hard_frames(index, hard_brake)[balanced].sum()),
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,
         "train_shown_motionless": int(train.motionless.sum()),
         "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),

@@ -109,7 +109,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                        "train on --synthetic") from e
     train_set, val_set, description = open_recordings(folder, hw, tc.val_fraction, tc.seed,
                                                       stop_keep=tc.stop_keep, start_repeat=tc.start_repeat,
-                                                      motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat)
+                                                      motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat,
+                                                      hard_brake=tc.hard_brake)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -577,7 +578,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     """The run config the flags ask for; None with --resume (the saved config is used)."""
     flags = {"--variant": args.variant, "--epochs": args.epochs, "--batch-size": args.batch_size,
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
-             "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat}
+             "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
+             "--hard-brake": args.hard_brake}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -607,6 +609,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not 0.0 <= args.augment <= 1.0:
             raise BidError(f"--augment is the share of training samples to augment, 0 to 1; got {args.augment}")
         tc = dataclasses.replace(tc, augment=args.augment)
+    if args.hard_brake is not None:
+        tc = dataclasses.replace(tc, hard_brake=args.hard_brake)
     return RunConfig(model, tc)
 
 

@@ -119,6 +119,8 @@ def test_hard_steering_and_braking_frames_are_repeated_while_moving():
     counts = np.bincount(rows, minlength=25)
     assert list(counts) == [1] * 10 + [3] * 10 + [1] * 5 and not still.any()
     assert list(balance_rows(ix, np.arange(25), 1.0, 1)[0]) == list(range(25))  # off: unchanged
+    steering_only = np.bincount(balance_rows(ix, np.arange(25), 1.0, 1, hard_repeat=3, hard_brake=False)[0])
+    assert list(steering_only) == [1] * 15 + [3] * 5 + [1] * 5  # braking into the bend: once
     with pytest.raises(BidError, match="hard_repeat"):
         balance_rows(ix, np.arange(25), 1.0, 1, hard_repeat=0)
 

@@ -90,6 +90,7 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
         (["train", "--preset", "tiny", "--synthetic", "--resume", "--out", str(tmp_path / "r")],
          "nothing to resume"),
         (["train", "--resume"], "--out DIR or --name"),
+        (["train", "--resume", "--no-hard-brake", "--out", str(tmp_path / "r")], "drop --hard-brake"),
         (["train", "--preset", "tiny", "--synthetic", "--epochs", "0"], "--epochs"),
         (["train", "--preset", "tiny", "--synthetic", "--augment", "1.5"], "--augment"),
         (["train", "--preset", "tiny", "--synthetic", "--device", "cpu", "--compile",
@@ -102,6 +103,23 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("error: ") and message in err and "\n" not in err, (argv, err)
     assert not (tmp_path / "c").exists()  # refused before the run folder is made
+
+
+def test_hard_frame_flags_reach_the_training_config():
+    import argparse
+
+    from bid_model.cli import add_train_arguments
+    from bid_model.train import config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+
+    def config(*flags):
+        return config_from_args(parser.parse_args(["--preset", "tiny", *flags])).train
+
+    assert config().hard_repeat == 1 and config().hard_brake
+    steering_only = config("--hard-repeat", "3", "--no-hard-brake")
+    assert steering_only.hard_repeat == 3 and not steering_only.hard_brake
 
 
 def test_photometric_augmentation_changes_both_frames_alike():
