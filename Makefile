@@ -34,7 +34,7 @@ AUGMENT ?= 0
 # Times each frame of hard steering or braking is trained on (the shipped BID: 3 in round 7).
 HARD_REPEAT ?= 1
 
-.PHONY: demo test bench towns clean lint record evaluate train dagger reproduce
+.PHONY: demo test bench towns clean lint record evaluate train dagger reproduce ablations
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -115,6 +115,24 @@ reproduce: $(STAMP)
 	$(BID) lesion --checkpoint runs/reproduce_dagger7/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
+
+# The paper's ablations (about 2 h on 2 cores; README "Ablations"): each variant starts from
+# the areas it shares with the shipped BID (`--init`; the ones it adds start afresh), is
+# fine-tuned one epoch on the DAgger round the shipped BID drove (recorded first if missing),
+# and drives the Town02 routes at normal density in the test weathers.
+ABLATION_DATA ?= data/town01/dagger8
+ABLATION_SEEDS ?= 1
+ablations: $(STAMP)
+	test -d $(ABLATION_DATA) || $(BID) record --town 01 --episodes 96 --seed 8 --dagger $(SHIPPED) \
+		--workers $(WORKERS) --out $(ABLATION_DATA)
+	for v in full baseline both dorsal navigation; do \
+		test -f runs/ablate_$$v/last.pt || $(BID) train --preset small --variant $$v --data $(ABLATION_DATA) \
+			--name ablate_$$v --init $(SHIPPED) --epochs 1 --lr 1e-4 --augment 0.8 --hard-repeat 3 || exit 1; \
+		test -f results/ablations/$$v/summary.json || $(BID) evaluate --town 02 --density normal --weathers test \
+			--seeds $(ABLATION_SEEDS) --agent bid --checkpoint runs/ablate_$$v/last.pt --workers $(WORKERS) \
+			--out results/ablations/$$v || exit 1; \
+	done
+	$(BID) tables results/ablations --out results/ablations/tables.md
 
 towns: $(STAMP)
 	$(BID) towns

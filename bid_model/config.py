@@ -23,6 +23,9 @@ VARIANTS: dict[str, dict[str, bool]] = {
     "full": {"dorsal": True, "navigation": True, "relations": True},
 }
 
+# The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
+VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
+
 PRESETS = ("paper", "small", "tiny")
 
 # The paper halves the learning rate at these epochs of its 100.

@@ -44,7 +44,7 @@ from tqdm import tqdm
 
 from bid_model.augment import photometric
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
-from bid_model.config import RunConfig, TrainConfig, preset, with_variant
+from bid_model.config import VARIANT_FIELDS, RunConfig, TrainConfig, preset, with_variant
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
 from bid_model.model import BID
 from bid_model.plots import plot_metrics, plot_sequence
@@ -400,6 +400,15 @@ def _plot(history: list[dict[str, Any]], val: dict[str, Any] | None, out: Path) 
                   out / "steering.png")
 
 
+def load_shared_weights(model: nn.Module, state: dict[str, torch.Tensor]) -> list[str]:
+    """Load the tensors of `state` that `model` has, with the same shape; return the names left
+    as they were (areas or buffers another variant lacks, or shaped otherwise)."""
+    own = model.state_dict()
+    shared = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
+    model.load_state_dict(shared, strict=False)
+    return sorted(k for k in own if k not in shared)
+
+
 # --- the run ----------------------------------------------------------------------------------
 
 
@@ -448,14 +457,14 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
                        "another --out / --name")
     if config is None:
         raise BidError("no config: pass a preset or --resume an existing run")
-    start_from = None
+    start_from, fresh = None, []
     if init is not None:
         if resume:
             raise BidError("--init starts a new run from a checkpoint's weights; --resume continues one: pick one")
         start_from = load_checkpoint(init)
         theirs = RunConfig.from_dict(start_from["config"]).model
-        if theirs != config.model:
-            diff = [f.name for f in dataclasses.fields(theirs) if getattr(theirs, f.name) != getattr(config.model, f.name)]
+        diff = [f.name for f in dataclasses.fields(theirs) if getattr(theirs, f.name) != getattr(config.model, f.name)]
+        if set(diff) - VARIANT_FIELDS:
             raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
                            f"train with its preset and flags, or start from scratch")
     tc = config.train
@@ -489,11 +498,16 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         sched.load_state_dict(ckpt["scheduler"])
         start, history, best = ckpt["epoch"], list(ckpt["history"]), ckpt["best_val_loss"]
     elif start_from is not None:
-        model.load_state_dict(start_from["model"])
+        fresh = load_shared_weights(model, start_from["model"])
 
     meta = {"git_hash": git_hash(), "version": _version(), "torch": str(torch.__version__)}
     if start_from is not None:
         meta["init"] = {"path": str(init), "epoch": start_from.get("epoch"), "git_hash": start_from.get("git_hash")}
+        if fresh:
+            meta["init"]["fresh"] = fresh
+            if dist.main:
+                print(f"--init {init}: a {theirs.variant} model; this {config.model.variant} one starts "
+                      f"{len(fresh)} tensors afresh: {', '.join(fresh)}")
     elif ckpt is not None and "init" in ckpt:
         meta["init"] = ckpt["init"]
     if dist.main:

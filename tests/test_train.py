@@ -17,7 +17,7 @@ import torch
 
 from bid_model.augment import photometric
 from bid_model.checkpoint import load_checkpoint, load_model
-from bid_model.config import RunConfig, tiny
+from bid_model.config import RunConfig, tiny, with_variant
 from bid_model.data import synthetic_split
 from bid_model.model import BID
 from bid_model.recordings import RecordingDataset
@@ -251,6 +251,31 @@ def test_init_starts_from_a_checkpoints_weights(tmp_path, capsys):
     assert bid(["train", "--preset", "tiny", "--synthetic", "--out", str(tmp_path / "e"),
                 "--init", str(tmp_path / "missing.pt")]) == 2
     assert "no checkpoint at" in capsys.readouterr().err
+
+
+def test_init_starts_another_variant_from_the_areas_they_share(tmp_path, capsys):
+    """The paper's ablations can start from a trained BID: the areas a variant keeps carry over,
+    the ones it lacks are dropped, and its own new ones (the MT → MPC tokens) start afresh."""
+    first = quick_run(1)
+    train(tmp_path / "full", first, synthetic=True, progress=False)
+    start = load_checkpoint(tmp_path / "full" / "last.pt")["model"]
+    still = dataclasses.replace(first.train, lr=1e-20, weight_decay=0.0)
+    dorsal = RunConfig(with_variant(first.model, "dorsal"), still)
+    train(tmp_path / "dorsal", dorsal, synthetic=True, progress=False, init=tmp_path / "full" / "last.pt")
+    tuned = load_checkpoint(tmp_path / "dorsal" / "last.pt")
+    weights = [name for name, _ in BID(dorsal.model).named_parameters()]
+    kept = [k for k in weights if k in start]
+    assert any(k.startswith("areas.MT.") for k in kept) and any(k.startswith("areas.MPC.") for k in kept)
+    assert all(torch.allclose(start[k], tuned["model"][k]) for k in kept)
+    assert not any(k.startswith(("areas.DPC.", "areas.OFC.")) for k in tuned["model"])
+    assert {k for k in weights if k not in start} == {k for k in tuned["init"]["fresh"] if k in weights}
+    assert tuned["init"]["fresh"] and all(k.startswith("dorsal_tokens.") or k.startswith("mean_")
+                                          for k in tuned["init"]["fresh"])
+    assert "starts" in capsys.readouterr().out
+    # Anything beyond the variant still has to match.
+    other = RunConfig(dataclasses.replace(dorsal.model, speed_input=not dorsal.model.speed_input), still)
+    with pytest.raises(BidError, match="different model"):
+        train(tmp_path / "x", other, synthetic=True, progress=False, init=tmp_path / "full" / "last.pt")
 
 
 @pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="needs Linux /proc/stat")
