@@ -37,7 +37,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")
     p.add_argument("--init", default=None, metavar="CHECKPOINT",
-                   help="start from this checkpoint's weights (fine-tuning; same preset and flags)")
+                   help="start from this checkpoint's weights (fine-tuning; same preset and flags, "
+                        "or another --variant: the areas both have)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--compile", action="store_true",
                    help="CUDA only: torch.compile each brain area (faster steps after a warm-up)")

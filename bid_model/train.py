@@ -421,6 +421,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
 
     `init`: start from the weights of that checkpoint (same model config) instead of random
     ones: fine-tuning, e.g. on DAgger data (`bid record --dagger`). The optimiser starts anew.
+    A checkpoint of another variant (the paper's ablations) gives the tensors both have; the
+    rest start afresh and are listed in the run's config (init.fresh).
 
     `compile_areas` (CUDA only): each brain area through torch.compile, in place, so the
     checkpoints keep their keys and lesions keep working.
