@@ -459,7 +459,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
                        "another --out / --name")
     if config is None:
         raise BidError("no config: pass a preset or --resume an existing run")
-    start_from, fresh = None, []
+    start_from, diff, fresh = None, [], []
     if init is not None:
         if resume:
             raise BidError("--init starts a new run from a checkpoint's weights; --resume continues one: pick one")
@@ -499,8 +499,10 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
         start, history, best = ckpt["epoch"], list(ckpt["history"]), ckpt["best_val_loss"]
-    elif start_from is not None:
+    elif start_from is not None and diff:  # another variant: the tensors both have
         fresh = load_shared_weights(model, start_from["model"])
+    elif start_from is not None:
+        model.load_state_dict(start_from["model"])
 
     meta = {"git_hash": git_hash(), "version": _version(), "torch": str(torch.__version__)}
     if start_from is not None:
