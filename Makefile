@@ -34,7 +34,7 @@ AUGMENT ?= 0
 # Times each frame of hard steering or braking is trained on (the shipped BID: 3 in round 7).
 HARD_REPEAT ?= 1
 
-.PHONY: demo test bench towns clean lint record evaluate train dagger reproduce ablations
+.PHONY: demo test bench towns clean lint record evaluate train dagger reproduce ablations multitown
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: $(PYTHON) not found; install Python 3.11 or run 'make PYTHON=python3 ...'"; exit 2; }
@@ -123,12 +123,15 @@ reproduce: $(STAMP)
 # and density), after the DAgger round the shipped BID drove is recorded if missing, and
 # drives the Town02 routes at normal density in the test weathers.
 ABLATION_SEEDS ?= 1
+# Links (files, not folders: training does not follow linked folders) to a quarter of the
+# episodes under $(1) in $(2): index i with (i + i // 12) % 4 == 0.
+link_quarter = (cd $(1) && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' | sort \
+	| awk '{match($$0, /ep[0-9]+_/); i = substr($$0, RSTART + 2, RLENGTH - 3) + 0; if ((i + int(i / 12)) % 4 == 0) print}' \
+	| while read f; do mkdir -p $(CURDIR)/$(2)/$$(dirname $$f) && ln -s $$(realpath $$f) $(CURDIR)/$(2)/$$f || exit 1; done)
 ablations: $(STAMP)
 	test -d data/town01/dagger8 || $(BID) record --town 01 --episodes 96 --seed 8 --dagger $(SHIPPED) \
 		--workers $(WORKERS) --out data/town01/dagger8
-	test -d data/ablation || (cd data/town01 && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' | sort \
-		| awk '{match($$0, /ep[0-9]+_/); i = substr($$0, RSTART + 2, RLENGTH - 3) + 0; if ((i + int(i / 12)) % 4 == 0) print}' \
-		| while read f; do mkdir -p ../ablation/$$(dirname $$f) && ln -s $$(realpath $$f) ../ablation/$$f || exit 1; done)
+	test -d data/ablation || $(call link_quarter,data/town01,data/ablation)
 	for v in full baseline both dorsal navigation; do \
 		test -f runs/ablate_$$v/last.pt || $(BID) train --preset small --variant $$v --data data/ablation \
 			--name ablate_$$v --init $(SHIPPED) --epochs 1 --lr 1e-4 --augment 0.8 --hard-repeat 3 || exit 1; \
@@ -137,6 +140,25 @@ ablations: $(STAMP)
 			--out results/ablations/$$v || exit 1; \
 	done
 	$(BID) tables results/ablations --out results/ablations/tables.md
+
+# The paper's multi-town setting, with the towns we have: the shipped BID (Town01 only) is
+# fine-tuned one epoch on Town02 recordings (expert demonstrations and a DAgger round the
+# shipped BID drove) and the quarter of Town01's of `make ablations`, then drives the Town05
+# routes, a town it has never seen, at every density (about 1 h on 2 cores).
+MULTITOWN_SEEDS ?= 1
+multitown: $(STAMP)
+	$(BID) record --town 02 --episodes 48 --perturb $(PERTURB) --workers $(WORKERS) --out data/town02
+	$(BID) record --town 02 --episodes 96 --seed 22 --dagger $(SHIPPED) --workers $(WORKERS) \
+		--out data/town02/dagger1
+	test -d data/multitown || ($(call link_quarter,data/town01,data/multitown/town01) \
+		&& cd data/town02 && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' | sort | while read f; do \
+			mkdir -p $(CURDIR)/data/multitown/town02/$$(dirname $$f) \
+			&& ln -s $$(realpath $$f) $(CURDIR)/data/multitown/town02/$$f || exit 1; done)
+	test -f runs/multitown/last.pt || $(BID) train --preset small --data data/multitown --name multitown \
+		--init $(SHIPPED) --epochs 1 --lr 1e-4 --augment 0.8 --hard-repeat 3
+	$(BID) evaluate --town 05 --density none,normal,crowded --weathers test --seeds $(MULTITOWN_SEEDS) --agent bid \
+		--checkpoint runs/multitown/last.pt --workers $(WORKERS) --out results/town05/multitown
+	$(BID) tables results/town05 --out results/town05/tables.md
 
 towns: $(STAMP)
 	$(BID) towns

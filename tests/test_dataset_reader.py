@@ -34,6 +34,15 @@ def test_reader_gives_contract_samples_split_by_episode(recorded, caplog):
     assert d2["cache"] is None and torch.equal(nocache[3]["frame"], s["frame"])
 
 
+def test_recordings_of_several_towns_are_named_by_their_folder(recorded, tmp_path):
+    # Each town's recorder numbers its episodes from 0, so the names alone repeat.
+    src = sorted(recorded.glob("*.mcap"))
+    for town, f in zip(("town01", "town02"), src, strict=True):
+        (tmp_path / town).mkdir()
+        shutil.copy(f, tmp_path / town / "ep00000.mcap")
+    _, _, desc = open_recordings(tmp_path, (48, 144), 0.5, 0, cache=False)
+    assert desc["recordings"] == 2 and desc["val_episodes"][0] in ("town01/ep00000.mcap", "town02/ep00000.mcap")
+
 
 def test_corrupt_recording_is_named(recorded, tmp_path):
     src = sorted(recorded.glob("*.mcap"))[0]
