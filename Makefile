@@ -120,7 +120,7 @@ reproduce: $(STAMP)
 # the areas it shares with the shipped BID (`--init`; the ones it adds start afresh), is
 # fine-tuned one epoch on a quarter of the episodes under data/town01 (links in
 # data/ablation: episodes whose index i has (i + i // 12) % 4 == 0, as many of each weather
-# and density), after the DAgger round the shipped BID drove is recorded if missing, and
+# and density), after the DAgger round the shipped BID drove is recorded (or finished), and
 # drives the Town02 routes at normal density in the test weathers.
 ABLATION_SEEDS ?= 1
 # Links (files, not folders: training does not follow linked folders) to a quarter of the
@@ -129,8 +129,8 @@ link_quarter = (cd $(1) && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' |
 	| awk '{match($$0, /ep[0-9]+_/); i = substr($$0, RSTART + 2, RLENGTH - 3) + 0; if ((i + int(i / 12)) % 4 == 0) print}' \
 	| while read f; do mkdir -p $(CURDIR)/$(2)/$$(dirname $$f) && ln -s $$(realpath $$f) $(CURDIR)/$(2)/$$f || exit 1; done)
 ablations: $(STAMP)
-	test -d data/town01/dagger8 || $(BID) record --town 01 --episodes 96 --seed 8 --dagger $(SHIPPED) \
-		--workers $(WORKERS) --out data/town01/dagger8
+	$(BID) record --town 01 --episodes 96 --seed 8 --dagger $(SHIPPED) --workers $(WORKERS) \
+		--out data/town01/dagger8
 	test -d data/ablation || $(call link_quarter,data/town01,data/ablation)
 	for v in full baseline both dorsal navigation; do \
 		test -f runs/ablate_$$v/last.pt || $(BID) train --preset small --variant $$v --data data/ablation \
