@@ -123,15 +123,16 @@ reproduce: $(STAMP)
 # and density), after the DAgger round the shipped BID drove is recorded (or finished), and
 # drives the Town02 routes at normal density in the test weathers.
 ABLATION_SEEDS ?= 1
-# Links (files, not folders: training does not follow linked folders) to a quarter of the
-# episodes under $(1) in $(2): index i with (i + i // 12) % 4 == 0.
-link_quarter = (cd $(1) && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' | sort \
-	| awk '{match($$0, /ep[0-9]+_/); i = substr($$0, RSTART + 2, RLENGTH - 3) + 0; if ((i + int(i / 12)) % 4 == 0) print}' \
+# Links in $(2) (files, not folders: training does not follow linked folders) to the
+# episodes under $(1) that the awk program $(3) prints; QUARTER prints those whose index i
+# has (i + i // 12) % 4 == 0.
+link_episodes = (cd $(1) && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' | sort | awk '$(3)' \
 	| while read f; do mkdir -p $(CURDIR)/$(2)/$$(dirname $$f) && ln -s $$(realpath $$f) $(CURDIR)/$(2)/$$f || exit 1; done)
+QUARTER = {match($$0, /ep[0-9]+_/); i = substr($$0, RSTART + 2, RLENGTH - 3) + 0; if ((i + int(i / 12)) % 4 == 0) print}
 ablations: $(STAMP)
 	$(BID) record --town 01 --episodes 96 --seed 8 --dagger $(SHIPPED) --workers $(WORKERS) \
 		--out data/town01/dagger8
-	test -d data/ablation || $(call link_quarter,data/town01,data/ablation)
+	test -d data/ablation || $(call link_episodes,data/town01,data/ablation,$(QUARTER))
 	for v in full baseline both dorsal navigation; do \
 		test -f runs/ablate_$$v/last.pt || $(BID) train --preset small --variant $$v --data data/ablation \
 			--name ablate_$$v --init $(SHIPPED) --epochs 1 --lr 1e-4 --augment 0.8 --hard-repeat 3 || exit 1; \
@@ -150,10 +151,8 @@ multitown: $(STAMP)
 	$(BID) record --town 02 --episodes 48 --perturb $(PERTURB) --workers $(WORKERS) --out data/town02
 	$(BID) record --town 02 --episodes 96 --seed 22 --dagger $(SHIPPED) --workers $(WORKERS) \
 		--out data/town02/dagger1
-	test -d data/multitown || ($(call link_quarter,data/town01,data/multitown/town01) \
-		&& cd data/town02 && find . -name 'ep*.mcap' -not -path '*/.bid_cache/*' | sort | while read f; do \
-			mkdir -p $(CURDIR)/data/multitown/town02/$$(dirname $$f) \
-			&& ln -s $$(realpath $$f) $(CURDIR)/data/multitown/town02/$$f || exit 1; done)
+	test -d data/multitown || ($(call link_episodes,data/town01,data/multitown/town01,$(QUARTER)) \
+		&& $(call link_episodes,data/town02,data/multitown/town02,1))
 	test -f runs/multitown/last.pt || $(BID) train --preset small --data data/multitown --name multitown \
 		--init $(SHIPPED) --epochs 1 --lr 1e-4 --augment 0.8 --hard-repeat 3
 	$(BID) evaluate --town 05 --density none,normal,crowded --weathers test --seeds $(MULTITOWN_SEEDS) --agent bid \
