@@ -31,6 +31,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="train on each frame of hard steering or braking N times (recordings.balance_rows)")
     p.add_argument("--hard-brake", action=argparse.BooleanOptionalAction, default=None,
                    help="with --hard-repeat, whether hard braking frames are repeated too (default yes)")
+    p.add_argument("--brake-lookahead", type=int, default=None, metavar="N",
+                   help="train on accel labels that brake as the expert will over the next N frames "
+                        "(recordings.anticipate_braking; 1, as recorded, by default)")
     p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the measured speed to the network (off in paper, on in small)")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")

@@ -150,8 +150,11 @@ class RecordingDataset(Dataset):
     """Samples (bid_model.data contract) of chosen rows of an index."""
 
     def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None,
-                 still: np.ndarray | None = None, motionless: np.ndarray | None = None):
+                 still: np.ndarray | None = None, motionless: np.ndarray | None = None,
+                 accel: np.ndarray | None = None):
         self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
+        # Accel labels per index row, where they are not the recorded ones (anticipate_braking).
+        self.accel_labels = None if accel is None else np.asarray(accel, dtype=np.float32)
         # Rows shown standing still: frame t−1 = frame t and speed 0 (see balance_rows).
         self.still = np.zeros(len(self.rows), dtype=bool) if still is None else np.asarray(still, dtype=bool)
         # Rows shown without motion, at their speed: frame t−1 = frame t (see motion_dropout).
@@ -182,7 +185,7 @@ class RecordingDataset(Dataset):
         return {"frame": frame, "prev_frame": frame if same else self._frame(int(ix.prev[j])),
                 "command": int(ix.command[j]), "speed_mps": 0.0 if still else float(ix.speed[j]),
                 "steer": float(ix.steer[j]),
-                "accel": float(ix.accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
+                "accel": float((ix.accel if self.accel_labels is None else self.accel_labels)[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -196,10 +199,11 @@ GO_LOOKAHEAD = 10  # standing frames this close before a start are kept: the cue
 STANDING_STEER_MAX = 0.5  # standing frames that steer harder say nothing (see balance_rows)
 HARD_STEER = 0.25  # |steer| from which a moving frame is a hard one (a turn, a sharp bend)
 HARD_BRAKE = -0.2  # accel up to which a moving frame is a hard one (slowing for a bend, a car)
+STOP_BRAKE = -0.5  # accel up to which the expert is stopping (anticipate_braking), not slowing
 
 
-def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
-                 start_repeat: int, hard_repeat: int = 1, hard_brake: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float, start_repeat: int, hard_repeat: int = 1,
+                 hard_brake: bool = True, accel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Training rows rebalanced against the stop/go imbalance of driving data, and which of
     them to show as standing still.
 
@@ -222,7 +226,10 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     lock it needs. Each of those frames (moving at START_MPS or more) is trained on
     `hard_repeat` times. With `hard_brake` False only the steering ones are: repeated braking
     teaches a fine-tuned network to brake before every bend it sees, down to a standstill in
-    front of Town02's corners (DAgger round 8). Returns (rows, still), sorted.
+    front of Town02's corners (DAgger round 8). `accel`: the labels trained on, where they are
+    not the recorded ones (anticipate_braking); then the frames of a stop (braking by
+    STOP_BRAKE or more, or braking earlier than recorded) are hard ones even without
+    `hard_brake`. Returns (rows, still), sorted.
     """
     if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1:
         raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat >= 1, got {stop_keep}, "
@@ -241,19 +248,55 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float,
     keep &= ~((index.speed[rows] < STOPPED_MPS) & (np.abs(index.steer[rows]) > STANDING_STEER_MAX))
     kept = rows[keep]
     repeats = np.repeat(kept[starting[kept]], start_repeat - 1)
-    hard_repeats = np.repeat(kept[hard_frames(index, hard_brake)[kept]], hard_repeat - 1)
+    hard_repeats = np.repeat(kept[hard_frames(index, hard_brake, accel)[kept]], hard_repeat - 1)
     all_rows = np.r_[kept, hard_repeats, repeats]
     still = np.r_[np.zeros(len(kept) + len(hard_repeats), dtype=bool), np.ones(len(repeats), dtype=bool)]
     order = np.lexsort((still, all_rows))
     return all_rows[order], still[order]
 
 
-def hard_frames(index: _Index, brake: bool = True) -> np.ndarray:
-    """Which frames steer (or, with `brake`, brake) hard while moving (see balance_rows)."""
+def hard_frames(index: _Index, brake: bool = True, accel: np.ndarray | None = None) -> np.ndarray:
+    """Which frames steer (or, with `brake`, brake) hard while moving, and with `accel` (the
+    labels trained on) which stop (see balance_rows)."""
+    labels = index.accel if accel is None else accel
     hard = np.abs(index.steer) >= HARD_STEER
     if brake:
-        hard |= index.accel <= HARD_BRAKE
+        hard |= labels <= HARD_BRAKE
+    if accel is not None:
+        hard |= (labels <= STOP_BRAKE) | (labels < index.accel)
     return (index.speed >= START_MPS) & hard
+
+
+def anticipate_braking(index: _Index, frames: int) -> np.ndarray:
+    """Accel labels that brake as soon as the expert is about to: each frame's label is the
+    lower of its own and the mean of its episode's labels over this frame and the next
+    `frames` - 1 (fewer at an episode's end or a gap in its steps).
+
+    The expert's speed control (IDM) brakes late and hard: towards a red light it keeps a
+    light throttle until about 15 m before the stop line and brakes fully in the last 5 m.
+    The round-7 BID, on Town02 route 0, brakes −0.1 to −0.35 where the expert brakes −1 and
+    crosses the line at 4.6 m/s; in the last 2 m the light has left the top of the frame
+    and it accelerates. Labels that already brake a second earlier, where the light is in
+    plain view, ask for the stop where it can be seen. Only stops move earlier (a frame of the
+    window brakes by STOP_BRAKE or more), not the slowing for a bend: braking for every bend
+    stranded a fine-tuned network in front of Town02's corners (DAgger round 8). Nor does
+    throttle: a standing frame right before a green start keeps its brake. 1 gives the
+    labels as recorded.
+    """
+    if frames < 1:
+        raise BidError(f"the braking look-ahead must be at least 1 frame, got {frames}")
+    accel = index.accel.astype(np.float64)
+    total, count, lowest = accel.copy(), np.ones(len(accel)), accel.copy()
+    for k in range(1, frames):
+        # Row i + k is the same episode's frame k steps later (no gap in between).
+        ahead = np.r_[index.step[k:] - index.step[:-k] == k, np.zeros(k, dtype=bool)]
+        ahead &= np.r_[index.episode[k:] == index.episode[:-k], np.zeros(k, dtype=bool)]
+        later = np.where(ahead, np.r_[accel[k:], np.zeros(k)], 0.0)
+        total += later
+        count += ahead
+        lowest = np.minimum(lowest, np.where(ahead, later, np.inf))
+    early = np.minimum(index.accel, (total / count).astype(np.float32))
+    return np.where(lowest <= STOP_BRAKE, early, index.accel).astype(np.float32)
 
 
 def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
@@ -273,13 +316,14 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
 
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
-                    motion_drop: float = 0.0, hard_repeat: int = 1,
-                    hard_brake: bool = True) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
+                    brake_lookahead: int = 1) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
     The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake)` and a share
-    `motion_drop` of them shown without motion (`motion_dropout`); the validation set keeps
-    every frame as recorded, so its errors stay those of real driving.
+    `motion_drop` of them shown without motion (`motion_dropout`); their accel labels brake
+    `brake_lookahead` frames ahead (`anticipate_braking`). The validation set keeps every
+    frame and label as recorded, so its errors stay those of real driving.
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -298,9 +342,10 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     train_eps, val_eps = split_episodes(range(len(files)), val_fraction, seed)
     is_val = np.isin(index.episode, val_eps)
     train_rows = np.flatnonzero(~is_val)
-    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake)
+    accel = anticipate_braking(index, brake_lookahead) if brake_lookahead != 1 else None
+    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel)
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
-                             motion_dropout(len(balanced), motion_drop, seed))
+                             motion_dropout(len(balanced), motion_drop, seed), accel)
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
@@ -309,8 +354,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "folder": str(folder), "recordings": len(files), "skipped_partial": [str(p) for p in partial],
         "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
         "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
-        "hard_repeat": hard_repeat, "hard_brake": hard_brake,
-        "train_hard_frames": int(hard_frames(index, hard_brake)[balanced].sum()),
+        "hard_repeat": hard_repeat, "hard_brake": hard_brake, "brake_lookahead": brake_lookahead,
+        "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
+        "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,
         "train_shown_motionless": int(train.motionless.sum()),
         "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),

@@ -110,7 +110,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
     train_set, val_set, description = open_recordings(folder, hw, tc.val_fraction, tc.seed,
                                                       stop_keep=tc.stop_keep, start_repeat=tc.start_repeat,
                                                       motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat,
-                                                      hard_brake=tc.hard_brake)
+                                                      hard_brake=tc.hard_brake,
+                                                      brake_lookahead=tc.brake_lookahead)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -597,7 +598,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     flags = {"--variant": args.variant, "--epochs": args.epochs, "--batch-size": args.batch_size,
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
              "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
-             "--hard-brake": args.hard_brake}
+             "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -614,7 +615,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     for flag, value, field, ok in (("--batch-size", args.batch_size, "batch_size", 2),
                                    ("--samples", args.samples, "synthetic_samples", 4),
                                    ("--seed", args.seed, "seed", 0),
-                                   ("--hard-repeat", args.hard_repeat, "hard_repeat", 1)):
+                                   ("--hard-repeat", args.hard_repeat, "hard_repeat", 1),
+                                   ("--brake-lookahead", args.brake_lookahead, "brake_lookahead", 1)):
         if value is not None:
             if value < ok:
                 raise BidError(f"{flag} must be at least {ok}, got {value}")

@@ -162,3 +162,56 @@ def test_motion_dropout_hides_motion_but_keeps_speed(recorded):
     assert not motion_dropout(100, 0.0, 3).any()
     with pytest.raises(BidError, match="motion dropout"):
         motion_dropout(10, 1.0, 0)
+
+
+def test_braking_labels_move_earlier_within_an_episode_and_throttle_does_not():
+    import numpy as np
+
+    from bid_model.recordings import anticipate_braking
+
+    # Episode 0 cruises, brakes hard for 2 frames, stands, then moves off; episode 1 follows;
+    # episode 2 slows for a bend without stopping.
+    accel = [0.4, 0.4, 0.4, -1.0, -1.0, -0.2, -0.2, 0.6, 0.1, 0.1, 0.3, 0.3, -0.4, -0.4]
+    ix = _fake_index([5.0] * 5 + [0.0] * 3 + [5.0] * 6, accel, [0] * 8 + [1] * 2 + [2] * 4)
+    got = anticipate_braking(ix, 3)
+    # Each label: the lower of itself and the mean over itself and the next 2 of its episode,
+    # where those brake by STOP_BRAKE or more; slowing (episode 2) stays as recorded.
+    want = [0.4, (0.8 - 1.0) / 3, (0.4 - 2.0) / 3, -1.0, -1.0, -0.2, -0.2, 0.6, 0.1, 0.1, *accel[10:]]
+    assert got == pytest.approx(want, abs=1e-6)
+    # The standing frame right before moving off keeps its brake; episode 1 is not pulled down
+    # by episode 0's braking, nor the last frames by frames that are not there.
+    assert got[6] == pytest.approx(-0.2) and got[7] == pytest.approx(0.6)
+    assert np.array_equal(anticipate_braking(ix, 1), ix.accel)
+    # A gap in the steps (frames not recorded) ends the window as an episode's end does.
+    ix.step[3:8] += 5
+    assert anticipate_braking(ix, 3)[1] == pytest.approx(0.4)
+    ix.step[3:8] -= 5
+
+
+def test_frames_of_a_stop_are_hard_ones_when_braking_is_anticipated():
+    import numpy as np
+
+    from bid_model.recordings import anticipate_braking, balance_rows
+
+    # Cruising, slowing for a bend, cruising, then stopping: only the stop's frames repeat.
+    accel = [0.3] * 3 + [-0.3] * 2 + [0.3] * 4 + [-0.3, -0.8, -1.0]
+    ix = _fake_index([6.0] * 12, accel, [0] * 12)
+    early = anticipate_braking(ix, 3)
+    rows, _ = balance_rows(ix, np.arange(12), 1.0, 1, hard_repeat=2, hard_brake=False, accel=early)
+    assert list(np.bincount(rows)) == [1] * 8 + [2] * 4  # 8 and 9 brake earlier than recorded
+    rows, _ = balance_rows(ix, np.arange(12), 1.0, 1, hard_repeat=2, hard_brake=True, accel=early)
+    assert list(np.bincount(rows)) == [1] * 3 + [2] * 2 + [1] * 3 + [2] * 4
+    with pytest.raises(BidError, match="look-ahead"):
+        anticipate_braking(ix, 0)
+
+
+def test_reader_trains_on_anticipated_braking_and_validates_on_recorded_labels(recorded):
+    from bid_model.recordings import anticipate_braking
+
+    train, val, desc = open_recordings(recorded, (48, 144), 0.5, 0, brake_lookahead=10)
+    early = anticipate_braking(train.index, 10)
+    assert desc["brake_lookahead"] == 10
+    assert desc["train_labels_braking_earlier"] == (early[train.rows] < train.index.accel[train.rows]).sum()
+    assert [train[i]["accel"] for i in range(len(train))] == pytest.approx(early[train.rows].tolist())
+    assert [val[i]["accel"] for i in range(len(val))] == pytest.approx(val.index.accel[val.rows].tolist())
+    assert open_recordings(recorded, (48, 144), 0.5, 0)[0].accel_labels is None

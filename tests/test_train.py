@@ -91,6 +91,7 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys):
          "nothing to resume"),
         (["train", "--resume"], "--out DIR or --name"),
         (["train", "--resume", "--no-hard-brake", "--out", str(tmp_path / "r")], "drop --hard-brake"),
+        (["train", "--preset", "tiny", "--synthetic", "--brake-lookahead", "0"], "--brake-lookahead must be at least 1"),
         (["train", "--preset", "tiny", "--synthetic", "--epochs", "0"], "--epochs"),
         (["train", "--preset", "tiny", "--synthetic", "--augment", "1.5"], "--augment"),
         (["train", "--preset", "tiny", "--synthetic", "--device", "cpu", "--compile",
@@ -120,6 +121,7 @@ def test_hard_frame_flags_reach_the_training_config():
     assert config().hard_repeat == 1 and config().hard_brake
     steering_only = config("--hard-repeat", "3", "--no-hard-brake")
     assert steering_only.hard_repeat == 3 and not steering_only.hard_brake
+    assert config().brake_lookahead == 1 and config("--brake-lookahead", "10").brake_lookahead == 10
 
 
 def test_photometric_augmentation_changes_both_frames_alike():
