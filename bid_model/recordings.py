@@ -279,9 +279,11 @@ def anticipate_braking(index: _Index, frames: int) -> np.ndarray:
     and it accelerates. Labels that already brake a second earlier, where the light is in
     plain view, ask for the stop where it can be seen. Only stops move earlier (a frame of the
     window brakes by STOP_BRAKE or more), not the slowing for a bend: braking for every bend
-    stranded a fine-tuned network in front of Town02's corners (DAgger round 8). Nor does
-    throttle: a standing frame right before a green start keeps its brake. 1 gives the
-    labels as recorded.
+    stranded a fine-tuned network in front of Town02's corners (DAgger round 8). And only
+    frames moving at START_MPS or more: a first try that also moved earlier the braking of
+    standing frames and the throttle of moving off (where a pedestrian soon stops the car
+    again) stood at green lights for good, braking fully, in 14 of 50 Town02 episodes in
+    normal traffic. 1 gives the labels as recorded.
     """
     if frames < 1:
         raise BidError(f"the braking look-ahead must be at least 1 frame, got {frames}")
@@ -296,7 +298,8 @@ def anticipate_braking(index: _Index, frames: int) -> np.ndarray:
         count += ahead
         lowest = np.minimum(lowest, np.where(ahead, later, np.inf))
     early = np.minimum(index.accel, (total / count).astype(np.float32))
-    return np.where(lowest <= STOP_BRAKE, early, index.accel).astype(np.float32)
+    moving = index.speed >= START_MPS
+    return np.where(moving & (lowest <= STOP_BRAKE), early, index.accel).astype(np.float32)
 
 
 def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:

@@ -172,15 +172,22 @@ def test_braking_labels_move_earlier_within_an_episode_and_throttle_does_not():
     # Episode 0 cruises, brakes hard for 2 frames, stands, then moves off; episode 1 follows;
     # episode 2 slows for a bend without stopping.
     accel = [0.4, 0.4, 0.4, -1.0, -1.0, -0.2, -0.2, 0.6, 0.1, 0.1, 0.3, 0.3, -0.4, -0.4]
-    ix = _fake_index([5.0] * 5 + [0.0] * 3 + [5.0] * 6, accel, [0] * 8 + [1] * 2 + [2] * 4)
+    ix = _fake_index([5.0] * 5 + [0.0] * 2 + [1.0] + [5.0] * 6, accel, [0] * 8 + [1] * 2 + [2] * 4)
     got = anticipate_braking(ix, 3)
-    # Each label: the lower of itself and the mean over itself and the next 2 of its episode,
-    # where those brake by STOP_BRAKE or more; slowing (episode 2) stays as recorded.
+    # Each label of a moving frame: the lower of itself and the mean over itself and the next
+    # 2 of its episode, where those brake by STOP_BRAKE or more; slowing (episode 2) and
+    # frames standing or moving off (5-7) stay as recorded.
     want = [0.4, (0.8 - 1.0) / 3, (0.4 - 2.0) / 3, -1.0, -1.0, -0.2, -0.2, 0.6, 0.1, 0.1, *accel[10:]]
     assert got == pytest.approx(want, abs=1e-6)
     # The standing frame right before moving off keeps its brake; episode 1 is not pulled down
     # by episode 0's braking, nor the last frames by frames that are not there.
     assert got[6] == pytest.approx(-0.2) and got[7] == pytest.approx(0.6)
+    # Moving off and stopping again right away (a pedestrian): the start keeps its throttle;
+    # at cruising speed the same labels would brake earlier.
+    start = _fake_index([1.0, 1.5, 1.8], [0.6, 0.6, -1.0], [0, 0, 0])
+    assert anticipate_braking(start, 3)[0] == pytest.approx(0.6)
+    start.speed[:] = 5.0
+    assert anticipate_braking(start, 3)[0] == pytest.approx(0.2 / 3)
     assert np.array_equal(anticipate_braking(ix, 1), ix.accel)
     # A gap in the steps (frames not recorded) ends the window as an episode's end does.
     ix.step[3:8] += 5
