@@ -178,6 +178,7 @@ class RecordingDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict[str, Any]:
         ix = self.index
+        accel = ix.accel if self.accel_labels is None else self.accel_labels
         j = int(self.rows[i])
         frame = self._frame(j)
         still = bool(self.still[i])
@@ -185,7 +186,7 @@ class RecordingDataset(Dataset):
         return {"frame": frame, "prev_frame": frame if same else self._frame(int(ix.prev[j])),
                 "command": int(ix.command[j]), "speed_mps": 0.0 if still else float(ix.speed[j]),
                 "steer": float(ix.steer[j]),
-                "accel": float((ix.accel if self.accel_labels is None else self.accel_labels)[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
+                "accel": float(accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)

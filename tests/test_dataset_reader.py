@@ -192,7 +192,6 @@ def test_braking_labels_move_earlier_within_an_episode_and_throttle_does_not():
     # A gap in the steps (frames not recorded) ends the window as an episode's end does.
     ix.step[3:8] += 5
     assert anticipate_braking(ix, 3)[1] == pytest.approx(0.4)
-    ix.step[3:8] -= 5
 
 
 def test_frames_of_a_stop_are_hard_ones_when_braking_is_anticipated():
