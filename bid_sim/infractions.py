@@ -38,6 +38,17 @@ def boxes_overlap(a: np.ndarray, b: np.ndarray) -> bool:
     return True
 
 
+def contact_side(ego: EgoState, params: EgoParams, x_m: float, y_m: float) -> str:
+    """The face of the ego's box nearest the point (an actor's centre): "front", "rear",
+    "left" or "right". With the ego's speed it tells a rear-ending from being rear-ended."""
+    dx, dy = x_m - ego.x_m, y_m - ego.y_m
+    c, s = math.cos(ego.yaw_rad), math.sin(ego.yaw_rad)
+    ahead, left = c * dx + s * dy, -s * dx + c * dy
+    if abs(ahead) / params.length_m >= abs(left) / params.width_m:
+        return "front" if ahead >= 0 else "rear"
+    return "left" if left >= 0 else "right"
+
+
 @dataclass
 class Monitor:
     """Watches one episode and collects its infractions."""
@@ -58,12 +69,12 @@ class Monitor:
     def _add(self, kind: str, t: float, x: float, y: float, actor: str = "", detail: str = "") -> None:
         self.infractions.append(Infraction(kind, round(t, 2), round(x, 2), round(y, 2), actor, detail))
 
-    def _collision(self, kind: str, t: float, ego: EgoState, actor: str) -> None:
+    def _collision(self, kind: str, t: float, ego: EgoState, actor: str, detail: str = "") -> None:
         last = self._last_hit.get(actor)
         if last is not None and t - last <= DEDUP_S:
             return  # the same actor again within 5 s counts once
         self._last_hit[actor] = t
-        self._add(kind, t, ego.x_m, ego.y_m, actor)
+        self._add(kind, t, ego.x_m, ego.y_m, actor, detail)
 
     def check(self, snap: Snapshot, prev: EgoState, ego: EgoState, route: Route,
               route_s_m: float, ds_m: float) -> None:
@@ -94,7 +105,8 @@ class Monitor:
                 other = box_corners(actors.xy[i, 0], actors.xy[i, 1], actors.yaw_rad[i],
                                     actors.size[i, 0], actors.size[i, 1])
                 if boxes_overlap(corners, other):
-                    self._collision(kind, t, ego, actors.ids[i])
+                    side = contact_side(ego, self.params, actors.xy[i, 0], actors.xy[i, 1])
+                    self._collision(kind, t, ego, actors.ids[i], f"{side}, ego {ego.speed_mps:.1f} m/s")
 
     def _check_layout(self, ego: EgoState, corners: np.ndarray, t: float) -> None:
         b = self.town_map.building_hit(corners)

@@ -7,9 +7,9 @@ import pytest
 
 from bid_sim import metrics as m
 from bid_sim.agents import LaneFollower, Scripted, pursuit_steer, speed_accel
-from bid_sim.ego import Control, EgoParams, box_corners
+from bid_sim.ego import Control, EgoParams, EgoState, box_corners
 from bid_sim.episode import run_episode
-from bid_sim.infractions import boxes_overlap
+from bid_sim.infractions import boxes_overlap, contact_side
 from bid_sim.routes import RouteSpec, plan_spec, road_graph
 from bid_sim.snapshot import RED, YELLOW
 
@@ -29,6 +29,16 @@ def test_boxes_overlap():
     assert boxes_overlap(a, box_corners(0, 1.0, 0, 0.5, 0.6))
 
 
+def test_contact_side_in_the_ego_frame():
+    ego, params = EgoState(10.0, 5.0, math.pi / 2), EgoParams()  # heading +y: its left is -x
+    assert contact_side(ego, params, 10.0, 8.0) == "front"
+    assert contact_side(ego, params, 10.3, 2.0) == "rear"
+    assert contact_side(ego, params, 9.0, 5.5) == "left"
+    assert contact_side(ego, params, 11.0, 4.5) == "right"
+    # A corner point: nearer the side face, scaled by the box's half-length and half-width.
+    assert contact_side(ego, params, 10.0 + params.width_m, 5.0 + params.length_m * 0.9) == "right"
+
+
 def test_vehicle_collision_counts_once_per_actor(town02):
     route = plan_spec(road_graph(town02.net_file), LONG)
 
@@ -41,7 +51,7 @@ def test_vehicle_collision_counts_once_per_actor(town02):
 
     r = run_episode(town02, LONG, "ClearNoon", "none", 0, LaneFollower(6.0), on_start=park_ahead, max_steps=250)
     hits = [i for i in r.infractions if i.kind == m.COLLISION_VEHICLE]
-    assert len(hits) == 1 and hits[0].actor == "parked"
+    assert len(hits) == 1 and hits[0].actor == "parked" and hits[0].detail.startswith("front, ego ")
     assert r.metrics["CV"] == 1 and r.metrics["SR"] == 0 and r.metrics["IP"] == pytest.approx(0.6)
 
 
