@@ -91,7 +91,7 @@ def _record(args: argparse.Namespace) -> int:
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
                      progress=not args.json, perturb=args.perturb, ray_address=args.ray,
-                     dagger=args.dagger)
+                     dagger=args.dagger, bends=args.bends)
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
     return 2 if summary["failed"] else 0
 
@@ -239,6 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="share of driving time with steering noise; labels stay the expert's (recovery data)")
     rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
                      help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
+    rec.add_argument("--bends", action="store_true",
+                     help="only routes that take a bend of the road (a corner, driven under LANEFOLLOW) "
+                          "in their first 250 m; few random routes do")
     rec.add_argument("--out", default=None, help="folder (default data/townNN)")
     _add_ray_argument(rec, "--out")
     rec.add_argument("--json", action="store_true")

@@ -53,7 +53,7 @@ class EpisodeSpec:
 
 def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
                   seed: int, agent: str = "expert", max_steps: int | None = None,
-                  perturb: float = 0.0, dagger: str | None = None) -> list[EpisodeSpec]:
+                  perturb: float = 0.0, dagger: str | None = None, bends: bool = False) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -65,9 +65,10 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
         check_weather(w)
     for d in densities:
         t.density(d)
-    routes = generate_routes(t, count=episodes, seed=10_000 + seed)
+    routes = generate_routes(t, count=episodes, seed=10_000 + seed, bends=bends)
     if len(routes) < episodes:
-        raise BidError(f"{t.name} yields only {len(routes)} random routes of >= 150 m; record fewer episodes")
+        kind = "random routes of >= 150 m" + (" with an early bend" if bends else "")
+        raise BidError(f"{t.name} yields only {len(routes)} {kind}; record fewer episodes")
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
                         seed * 100_000 + i, agent, max_steps, perturb, dagger) for i in range(episodes)]
@@ -120,8 +121,9 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
-           dagger: str | None = None) -> dict:
+           dagger: str | None = None, bends: bool = False) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
+    bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
     dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger).
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
@@ -150,7 +152,7 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
 
         load_agent("bid", dagger)  # a damaged or foreign checkpoint fails here, once
         dagger = str(Path(dagger).resolve())
-    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger)
+    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends)
     todo = [s for s in specs if not (out / f"{s.name}.mcap").exists()]
     for s in todo:
         partial_path(out / f"{s.name}.mcap").unlink(missing_ok=True)  # restarted from scratch

@@ -31,6 +31,10 @@ COMMAND_NAMES = {
 }
 COMMAND_LEAD_M = 20.0  # the junction's command is given this far before entering it
 LANE_CHANGE_M = 25.0  # length of a lane change manoeuvre along the route
+BEND_DEG = 60.0  # a road bend (Route.road_bends) turns this much or more ...
+BEND_WINDOW_M = 40.0  # ... within this distance
+BEND_TRIES = 400  # random candidates per route when it must take a bend ...
+BEND_WITHIN_M = 250.0  # ... this near its start (a recorded episode is 90 s by default)
 _TURN = {"l": LEFT, "L": LEFT, "r": RIGHT, "R": RIGHT, "s": STRAIGHT, "t": LEFT}
 
 
@@ -103,6 +107,35 @@ class Route:
             if piece.s0_m > s_m + COMMAND_LEAD_M:
                 break
         return LANEFOLLOW
+
+    def road_bends(self, min_turn_deg: float = BEND_DEG, window_m: float = BEND_WINDOW_M
+                   ) -> list[tuple[float, float]]:
+        """Bends of the road outside junctions, the ring's corners: (s_m where the bend
+        starts, turn in degrees, + left) for every stretch of road piece that turns by
+        min_turn_deg or more within window_m. A junction's turn is not a bend (it has its
+        own command); a bend is driven under LANEFOLLOW."""
+        seg = np.diff(self.polyline, axis=0)
+        length = np.hypot(seg[:, 0], seg[:, 1])
+        keep = length > 0.05
+        heading = np.unwrap(np.arctan2(seg[keep, 1], seg[keep, 0]))
+        mid = (self.cum_s[:-1] + 0.5 * length)[keep]
+        road = np.full(len(mid), -1)  # the road piece each segment lies on, -1 in a junction
+        for k, piece in enumerate(self.pieces):
+            if not piece.junction:
+                road[(mid >= piece.s0_m) & (mid < piece.s1_m)] = k
+        bends: list[tuple[float, float]] = []
+        i = 0
+        while i < len(mid):
+            if road[i] >= 0:
+                j = int(np.searchsorted(mid, mid[i] + window_m, side="right"))
+                same = np.nonzero(road[i:j] == road[i])[0] + i
+                turn = math.degrees(heading[same[-1]] - heading[i])
+                if abs(turn) >= min_turn_deg:
+                    bends.append((round(float(mid[i]), 1), round(turn, 1)))
+                    i = j
+                    continue
+            i += 1
+        return bends
 
     def lanes_at(self, s_m: float) -> tuple[str, ...]:
         """Lane ids of the route around s_m (the lane there and its neighbours on the route)."""
@@ -362,9 +395,10 @@ def route_by_index(town: Town, index: int) -> RouteSpec:
 
 
 def generate_routes(town: Town, count: int, seed: int, lengths_m: list[float] | None = None,
-                    min_length_m: float = 150.0) -> list[RouteSpec]:
+                    min_length_m: float = 150.0, bends: bool = False) -> list[RouteSpec]:
     """Random start/goal pairs, deterministic per seed; with lengths_m, one route per target
-    length, picking the candidate whose planned length is closest."""
+    length, picking the candidate whose planned length is closest. With bends, only routes
+    that take a bend of the road (Route.road_bends), which few random routes do."""
     graph = road_graph(town.net_file)
     rng = np.random.default_rng(seed)
     edges = sorted(graph.car_edges)
@@ -373,17 +407,18 @@ def generate_routes(town: Town, count: int, seed: int, lengths_m: list[float] | 
     out: list[RouteSpec] = []
     for target in targets:
         best = None
-        for _ in range(60 if target else 20):
+        for _ in range(BEND_TRIES if bends else 60 if target else 20):
             a, b = rng.choice(long_edges, 2, replace=True)
             la, lb = graph.net.getEdge(a).getLength(), graph.net.getEdge(b).getLength()
             pa = float(np.round(rng.uniform(0.2, 0.6) * la, 1))
             pb = float(np.round(rng.uniform(0.4, 0.8) * lb, 1))
             spec = RouteSpec(str(a), pa, str(b), pb)
             try:
-                length = plan_spec(graph, spec).length_m
+                route = plan_spec(graph, spec)
             except BidError:
                 continue
-            if length < min_length_m:
+            length = route.length_m
+            if length < min_length_m or (bends and not any(b <= BEND_WITHIN_M for b, _ in route.road_bends())):
                 continue
             err = 0.0 if target is None else abs(length - target)
             if best is None or err < best[0]:

@@ -152,6 +152,23 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     assert "writable" in capsys.readouterr().err
 
 
+def test_record_bends_takes_routes_round_a_corner(tmp_path):
+    from bid_sim.recording import read_facts
+    from bid_sim.routes import RouteSpec, plan_spec, road_graph
+    from bid_sim.towns import resolve_town
+
+    out = tmp_path / "bends"
+    assert main(["record", "--town", "02", "--episodes", "2", "--densities", "none", "--weathers", "ClearNoon",
+                 "--max-steps", "3", "--workers", "1", "--bends", "--out", str(out), "--json"]) == 0
+    graph = road_graph(resolve_town("02").net_file)
+    assert len(files(out)) == 2
+    for f in files(out):
+        start, goal = read_facts(f)["route"].split("->")
+        (a, pa), (b, pb) = start.split("@"), goal.split("@")
+        route = plan_spec(graph, RouteSpec(a, float(pa), b, float(pb)))
+        assert any(s <= 250.0 for s, _ in route.road_bends())
+
+
 def test_kill_mid_episode_keeps_finished_ones(recorded, tmp_path):
     """kill -9 while recording: finished episodes stay intact, the partial is salvageable,
     and a re-run completes the rest."""

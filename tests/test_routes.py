@@ -12,6 +12,7 @@ from bid_sim.routes import (
     RIGHT,
     STRAIGHT,
     RouteSpec,
+    generate_routes,
     load_routes,
     plan,
     plan_spec,
@@ -108,3 +109,26 @@ def test_town_without_routes_gets_generated_deterministic_ones(tmp_path):
     a = load_routes(resolve_town(tmp_path))
     b = load_routes(resolve_town(tmp_path))
     assert a == b and len(a) == 25
+
+
+def test_road_bends_are_corners_not_junction_turns(town02):
+    graph = road_graph(town02.net_file)
+    corner = plan_spec(graph, route_by_index(town02, 3))  # the south-east corner, turning right
+    (s, turn), = corner.road_bends()
+    assert turn == pytest.approx(-90.0, abs=3.0)
+    x, y, _ = corner.point_at(s + 30.0)
+    assert math.hypot(x - 189.0, y + 300.0) < 10.0
+    turns_only = plan_spec(graph, route_by_index(town02, 16))  # eight junction turns, no corner
+    assert sum(p.command in (LEFT, RIGHT) for p in turns_only.pieces) == 8
+    assert turns_only.road_bends() == []
+
+
+def test_generated_routes_with_bends_take_one_early():
+    town = resolve_town("01")
+    graph = road_graph(town.net_file)
+    specs = generate_routes(town, count=6, seed=3, bends=True)
+    assert len(specs) == 6 and specs == generate_routes(town, count=6, seed=3, bends=True)
+    for spec in specs:
+        assert any(s <= 250.0 for s, _ in plan_spec(graph, spec).road_bends())
+    plain = [plan_spec(graph, spec) for spec in generate_routes(town, count=24, seed=3)]
+    assert sum(any(s <= 250.0 for s, _ in r.road_bends()) for r in plain) < 12
