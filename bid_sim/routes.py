@@ -110,10 +110,11 @@ class Route:
 
     def road_bends(self, min_turn_deg: float = BEND_DEG, window_m: float = BEND_WINDOW_M
                    ) -> list[tuple[float, float]]:
-        """Bends of the road outside junctions, the ring's corners: (s_m where the bend
-        starts, turn in degrees, + left) for every stretch of road piece that turns by
-        min_turn_deg or more within window_m. A junction's turn is not a bend (it has its
-        own command); a bend is driven under LANEFOLLOW."""
+        """Bends of the road outside junctions, the ring's corners: (s_m, turn in degrees,
+        + left) for each stretch of one road piece that turns by min_turn_deg or more within
+        window_m, s_m where the first such window starts (up to window_m before the bend's
+        middle). A junction's turn is not a bend (it has its own command); a bend is driven
+        under LANEFOLLOW."""
         seg = np.diff(self.polyline, axis=0)
         length = np.hypot(seg[:, 0], seg[:, 1])
         keep = length > 0.05
@@ -398,7 +399,8 @@ def generate_routes(town: Town, count: int, seed: int, lengths_m: list[float] | 
                     min_length_m: float = 150.0, bends: bool = False) -> list[RouteSpec]:
     """Random start/goal pairs, deterministic per seed; with lengths_m, one route per target
     length, picking the candidate whose planned length is closest. With bends, only routes
-    that take a bend of the road (Route.road_bends), which few random routes do."""
+    that take a bend of the road (Route.road_bends) in their first BEND_WITHIN_M: a third of
+    random routes pass one of Town01's four corners at all, and few of them early."""
     graph = road_graph(town.net_file)
     rng = np.random.default_rng(seed)
     edges = sorted(graph.car_edges)
@@ -418,7 +420,7 @@ def generate_routes(town: Town, count: int, seed: int, lengths_m: list[float] | 
             except BidError:
                 continue
             length = route.length_m
-            if length < min_length_m or (bends and not any(b <= BEND_WITHIN_M for b, _ in route.road_bends())):
+            if length < min_length_m or (bends and not any(at <= BEND_WITHIN_M for at, _ in route.road_bends())):
                 continue
             err = 0.0 if target is None else abs(length - target)
             if best is None or err < best[0]:
