@@ -34,6 +34,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--brake-lookahead", type=int, default=None, metavar="N",
                    help="train on accel labels that brake as the expert will over the next N frames "
                         "(recordings.anticipate_braking; 1, as recorded, by default)")
+    p.add_argument("--forecast", type=float, default=None, metavar="WEIGHT",
+                   help="also train a head forecasting the speed 1, 2 and 3 s ahead, its L1 loss "
+                        "weighted WEIGHT (speed in units of 10 m/s; 0, none, by default); driving "
+                        "ignores it (bid_model/model.py)")
     p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the measured speed to the network (off in paper, on in small)")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")

@@ -25,6 +25,12 @@ VARIANTS: dict[str, dict[str, bool]] = {
 
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
+# Fields whose change only adds or drops parts: `--init` starts those afresh.
+INIT_FIELDS = VARIANT_FIELDS | {"forecast_s"}
+
+# Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
+# starts braking for a 90° corner about 3 s before it.
+FORECAST_S = (1.0, 2.0, 3.0)
 
 PRESETS = ("paper", "small", "tiny")
 
@@ -58,6 +64,9 @@ class ModelConfig:
     navigation: bool = True
     relations: bool = True
     speed_input: bool = False  # measured speed as an extra token (off in the paper)
+    # Seconds ahead of the auxiliary speed forecast (BID.forward(forecast=True)); () = none.
+    # A training signal only: driving uses (steer, accel) alone. Not in the paper.
+    forecast_s: tuple[float, ...] = ()
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -69,6 +78,8 @@ class ModelConfig:
             raise ValueError("filter groups must divide the filtered widths")
         if self.relations and not self.dorsal:
             raise ValueError("relations (DPC) need the dorsal stream (MT)")
+        if any(not t > 0 for t in self.forecast_s):
+            raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 
     @property
     def width(self) -> int:
@@ -96,6 +107,7 @@ class TrainConfig:
     brake_lookahead: int = 1  # frames over which training labels brake ahead (recordings.anticipate_braking)
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
+    lambda_forecast: float = 0.0  # weight of the speed forecast's L1 loss (model.forecast_s)
     seed: int = 0
     workers: int = 2
     synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`

@@ -18,6 +18,8 @@ Dataset contract. Training reads any `torch.utils.data.Dataset` whose items are 
 | `accel`      | float32 in [−1, 1], >0 throttle   | expert label                               |
 | `episode`    | int                               | episode index (splits, sequence plots)     |
 | `step`       | int                               | step within the episode (0.1 s each)       |
+| `future_speed` | float32 tensor (K,), optional   | speed K horizons ahead, m/s: the targets   |
+|              |                                   | of the speed forecast (`forecast_s`)       |
 
 Train and validation sets are split by episode (`split_episodes`), never by frame, so that
 neighbouring, nearly identical frames do not leak into validation. `check_sample` validates
@@ -113,11 +115,15 @@ class SyntheticDriving(Dataset):
     Each episode moves one bright square smoothly across the three cameras: steer follows its
     horizontal position (plus a nudge from the command), accel its height (high = far =
     throttle), speed its height too. Frame t−1 is the square one step earlier, so motion is
-    real. Item `i` depends only on (seed, i): no state, same data in every worker.
+    real. Item `i` depends only on (seed, i): no state, same data in every worker. With
+    `forecast_steps`, items hold "future_speed": the speed that many steps on (held at the
+    episode's last step).
     """
 
-    def __init__(self, n: int, frame_hw: tuple[int, int], seed: int = 0, episode_len: int = 20):
+    def __init__(self, n: int, frame_hw: tuple[int, int], seed: int = 0, episode_len: int = 20,
+                 forecast_steps: tuple[int, ...] = ()):
         self.n, self.frame_hw, self.seed, self.episode_len = n, tuple(frame_hw), seed, episode_len
+        self.forecast_steps = tuple(forecast_steps)
 
     def __len__(self) -> int:
         return self.n
@@ -131,6 +137,10 @@ class SyntheticDriving(Dataset):
     def _position(self, phase_x: float, phase_y: float, step: int) -> tuple[float, float]:
         t = 2 * math.pi * step / self.episode_len
         return 0.5 + 0.4 * math.sin(phase_x + t), 0.5 + 0.3 * math.sin(phase_y + 0.5 * t)
+
+    @staticmethod
+    def _speed(y: float) -> float:
+        return 6.0 + 8.0 * (0.5 - y)
 
     def _render(self, episode: int, step: int, x: float, y: float) -> np.ndarray:
         h, w = self.frame_hw
@@ -152,22 +162,28 @@ class SyntheticDriving(Dataset):
         nudge = {1: -0.3, 2: 0.3, 5: -0.15, 6: 0.15}.get(command, 0.0)
         steer = float(np.clip(1.6 * (x - 0.5) + nudge, -1, 1))
         accel = float(np.clip(2.4 * (0.5 - y), -1, 1))
-        return {
+        sample = {
             "frame": torch.from_numpy(frame.transpose(2, 0, 1).copy()),
             "prev_frame": torch.from_numpy(prev.transpose(2, 0, 1).copy()),
             "command": torch.tensor(command, dtype=torch.int64),
-            "speed_mps": torch.tensor(6.0 + 8.0 * (0.5 - y), dtype=torch.float32),
+            "speed_mps": torch.tensor(self._speed(y), dtype=torch.float32),
             "steer": torch.tensor(steer, dtype=torch.float32),
             "accel": torch.tensor(accel, dtype=torch.float32),
             "episode": episode,
             "step": step,
         }
+        if self.forecast_steps:
+            last = self.episode_len - 1
+            sample["future_speed"] = torch.tensor(
+                [self._speed(self._position(px, py, min(step + k, last))[1]) for k in self.forecast_steps],
+                dtype=torch.float32)
+        return sample
 
 
-def synthetic_split(n: int, frame_hw: tuple[int, int], val_fraction: float,
-                    seed: int) -> tuple[Dataset, Dataset, dict[str, Any]]:
+def synthetic_split(n: int, frame_hw: tuple[int, int], val_fraction: float, seed: int,
+                    forecast_steps: tuple[int, ...] = ()) -> tuple[Dataset, Dataset, dict[str, Any]]:
     """(train, validation, description) of a SyntheticDriving set, split by episode."""
-    data = SyntheticDriving(n, frame_hw, seed)
+    data = SyntheticDriving(n, frame_hw, seed, forecast_steps=forecast_steps)
     episodes = [i // data.episode_len for i in range(n)]
     train_eps, val_eps = split_episodes(episodes, val_fraction, seed)
     val_set = set(val_eps)

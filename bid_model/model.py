@@ -4,6 +4,11 @@
     frame t−1 ─▶ V1 ─┴──────▶ MT/MST ──E_S──▶ DPC ─┼─▶ MPC ─▶ CPC ─▶ (steer, accel)
     command ─────────────────────────────────▶ OFC ─┘
 
+With `config.forecast_s` a small head beside CPC also forecasts the speed those seconds
+ahead from MPC's tokens: an auxiliary training target (`forward(..., forecast=True)`) that
+asks the decision network to see a slowdown coming (a corner, a red light, a queue) before
+the expert's braking starts; driving never reads it.
+
 `BID.forward_features` returns every area's output by name; `forward_head` is CPC. Any area
 can be lesioned at inference (`set_lesions`, `lesioned`): its output is replaced by zeros or
 by its mean activation, a running mean kept during training.
@@ -58,6 +63,10 @@ class BID(nn.Module):
         self.dorsal_tokens = GridTokens(n_tokens, d) if c.dorsal and not c.relations else None
         # Measured speed as an extra token: an option, not part of the paper's model.
         self.speed_token = nn.Linear(1, d) if c.speed_input else None
+        # Auxiliary speed forecast, in units of SPEED_SCALE_MPS; not an area (no lesions).
+        self.forecast_head = (nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
+                                            nn.Linear(c.cpc_hidden[1], len(c.forecast_s)))
+                              if c.forecast_s else None)
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
@@ -177,17 +186,27 @@ class BID(nn.Module):
         """CPC: MPC's tokens → (batch, 2) = (steer, accel), each in [−1, 1]."""
         return self._area("CPC", features["MPC"])
 
+    def forward_forecast(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(batch, len(forecast_s)): the speed forecast, m/s, from MPC's tokens."""
+        if self.forecast_head is None:
+            raise BidError("this model has no speed forecast; train it with --forecast")
+        return self.forecast_head(features["MPC"].mean(dim=1)) * SPEED_SCALE_MPS
+
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
-                command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
-        """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6)."""
-        return self.forward_head(self.forward_features(frame_t, frame_prev, command_onehot,
-                                                       speed_mps))
+                command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,
+                forecast: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6);
+        with `forecast`, ((steer, accel), forecast speeds (B, len(forecast_s)) in m/s)."""
+        feats = self.forward_features(frame_t, frame_prev, command_onehot, speed_mps)
+        control = self.forward_head(feats)
+        return (control, self.forward_forecast(feats)) if forecast else control
 
     def parameter_counts(self) -> dict[str, int]:
         """Number of parameters of each area (and of the optional extra pathways)."""
         counts = {name: sum(p.numel() for p in area.parameters())
                   for name, area in self.areas.items()}
-        for name, module in (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token)):
+        for name, module in (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
+                             ("forecast", self.forecast_head)):
             if module is not None:
                 counts[name] = sum(p.numel() for p in module.parameters())
         return counts

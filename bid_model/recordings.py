@@ -151,8 +151,10 @@ class RecordingDataset(Dataset):
 
     def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None,
                  still: np.ndarray | None = None, motionless: np.ndarray | None = None,
-                 accel: np.ndarray | None = None):
+                 accel: np.ndarray | None = None, forecast: np.ndarray | None = None):
         self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
+        # (N, K) speeds ahead per index row, the targets of the speed forecast (future_speeds).
+        self.forecast = forecast
         # Accel labels per index row, where they are not the recorded ones (anticipate_braking).
         self.accel_labels = None if accel is None else np.asarray(accel, dtype=np.float32)
         # Rows shown standing still: frame t−1 = frame t and speed 0 (see balance_rows).
@@ -183,10 +185,13 @@ class RecordingDataset(Dataset):
         frame = self._frame(j)
         still = bool(self.still[i])
         same = still or bool(self.motionless[i])
-        return {"frame": frame, "prev_frame": frame if same else self._frame(int(ix.prev[j])),
-                "command": int(ix.command[j]), "speed_mps": 0.0 if still else float(ix.speed[j]),
-                "steer": float(ix.steer[j]),
-                "accel": float(accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
+        sample = {"frame": frame, "prev_frame": frame if same else self._frame(int(ix.prev[j])),
+                  "command": int(ix.command[j]), "speed_mps": 0.0 if still else float(ix.speed[j]),
+                  "steer": float(ix.steer[j]),
+                  "accel": float(accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
+        if self.forecast is not None:
+            sample["future_speed"] = torch.from_numpy(self.forecast[j])
+        return sample
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
@@ -303,6 +308,22 @@ def anticipate_braking(index: _Index, frames: int) -> np.ndarray:
     return np.where(moving & (lowest <= STOP_BRAKE), early, index.accel).astype(np.float32)
 
 
+def future_speeds(index: _Index, steps: tuple[int, ...]) -> np.ndarray:
+    """(N, len(steps)) float32: each frame's speed that many steps later in its episode, the
+    targets of the speed forecast (BID.forward_forecast). Past the last frame of an unbroken
+    run of steps (the episode's end, or a gap) it is that last frame's speed: where the
+    recording stops, the car is taken to hold its speed."""
+    n = len(index.step)
+    if n == 0 or not steps:
+        return np.zeros((n, len(steps)), dtype=np.float32)
+    # Last row of each row's unbroken run: runs break where the episode or step continuity does.
+    breaks = np.r_[(index.episode[1:] != index.episode[:-1]) | (np.diff(index.step) != 1), True]
+    run_end = np.flatnonzero(breaks)
+    rows = np.arange(n)
+    last = run_end[np.searchsorted(run_end, rows)]
+    return np.stack([index.speed[np.minimum(rows + k, last)] for k in steps], axis=1).astype(np.float32)
+
+
 def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
     """Which of n training rows to show without motion (frame t−1 = frame t): a fixed random
     `share` of them, drawn from `seed`.
@@ -321,13 +342,16 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
-                    brake_lookahead: int = 1) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = ()
+                    ) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
     The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake)` and a share
     `motion_drop` of them shown without motion (`motion_dropout`); their accel labels brake
     `brake_lookahead` frames ahead (`anticipate_braking`). The validation set keeps every
-    frame and label as recorded, so its errors stay those of real driving.
+    frame and label as recorded, so its errors stay those of real driving. With
+    `forecast_steps` the samples of both also hold "future_speed", the speeds that many steps
+    ahead (`future_speeds`).
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -348,9 +372,10 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     train_rows = np.flatnonzero(~is_val)
     accel = anticipate_braking(index, brake_lookahead) if brake_lookahead != 1 else None
     balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel)
+    forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
-                             motion_dropout(len(balanced), motion_drop, seed), accel)
-    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path)
+                             motion_dropout(len(balanced), motion_drop, seed), accel, forecast)
+    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
     towns = Counter(f.get("town", "?") for f in index.facts)
@@ -359,6 +384,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "samples": len(index.step), "train_samples": len(train), "val_samples": len(val),
         "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
         "hard_repeat": hard_repeat, "hard_brake": hard_brake, "brake_lookahead": brake_lookahead,
+        "forecast_steps": list(forecast_steps),
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,

@@ -44,18 +44,20 @@ from tqdm import tqdm
 
 from bid_model.augment import photometric
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
-from bid_model.config import VARIANT_FIELDS, RunConfig, TrainConfig, preset, with_variant
+from bid_model.config import FORECAST_S, INIT_FIELDS, RunConfig, TrainConfig, preset, with_variant
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.model import BID
+from bid_model.model import BID, SPEED_SCALE_MPS
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
+from bid_sim.world import DT_S
 
 log = logging.getLogger(__name__)
 
 DEFAULT_DATA = Path("data/town01")
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
-                  "const_mae_steer", "const_mae_accel", "lr", "samples_per_s", "time_s")
+                  "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "lr", "samples_per_s",
+                  "time_s")
 
 
 # --- pieces ----------------------------------------------------------------------------------
@@ -77,6 +79,17 @@ def l1_loss(pred: torch.Tensor, target: torch.Tensor, tc: TrainConfig) -> torch.
     return tc.lambda_steer * err[0] + tc.lambda_accel * err[1]
 
 
+def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Tensor:
+    """L1 error of the speed forecast in units of SPEED_SCALE_MPS (as the speed input),
+    averaged over the batch and the horizons."""
+    return ((pred_mps.float() - target_mps) / SPEED_SCALE_MPS).abs().mean()
+
+
+def forecast_steps(config: RunConfig) -> tuple[int, ...]:
+    """The model's forecast horizons in simulation steps."""
+    return tuple(round(t / DT_S) for t in config.model.forecast_s)
+
+
 def batch_inputs(batch: dict[str, Any], device: torch.device
                  ) -> tuple[tuple[torch.Tensor, ...], torch.Tensor]:
     """((frame_t, frame_prev, command one-hot, speed), target (B, 2)) on `device`."""
@@ -91,9 +104,9 @@ def batch_inputs(batch: dict[str, Any], device: torch.device
 def open_data(config: RunConfig, data: Path | None, synthetic: bool
               ) -> tuple[Dataset, Dataset, dict[str, Any]]:
     """(train, validation, description): generated data, or the recordings in `data`."""
-    tc, hw = config.train, config.model.frame_hw
+    tc, hw, ahead = config.train, config.model.frame_hw, forecast_steps(config)
     if synthetic:
-        return synthetic_split(tc.synthetic_samples, hw, tc.val_fraction, tc.seed)
+        return synthetic_split(tc.synthetic_samples, hw, tc.val_fraction, tc.seed, ahead)
     folder = Path(data if data is not None else DEFAULT_DATA)
     hint = "record some with `make record TOWN=01`, or train on generated data with --synthetic"
     if not folder.is_dir():
@@ -111,7 +124,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       stop_keep=tc.stop_keep, start_repeat=tc.start_repeat,
                                                       motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat,
                                                       hard_brake=tc.hard_brake,
-                                                      brake_lookahead=tc.brake_lookahead)
+                                                      brake_lookahead=tc.brake_lookahead,
+                                                      forecast_steps=ahead)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -350,8 +364,13 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
         if tc.augment > 0:
             inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
         with _autocast(device):
-            pred = net(*inputs)
+            if tc.lambda_forecast > 0:
+                pred, ahead = net(*inputs, forecast=True)
+            else:
+                pred = net(*inputs)
         loss = l1_loss(pred, target, tc)
+        if tc.lambda_forecast > 0:
+            loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -369,11 +388,16 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
              ) -> dict[str, Any]:
     """Loss and MAE on `loader`, the best constant's MAE, and every prediction (for plots)."""
     model.eval()
-    preds, targets, episodes, steps = [], [], [], []
+    preds, targets, episodes, steps, forecast_err = [], [], [], [], []
     for batch in loader:
         inputs, target = batch_inputs(batch, device)
         with _autocast(device):
-            preds.append(model(*inputs).float().cpu())
+            if tc.lambda_forecast > 0:
+                pred, ahead = model(*inputs, forecast=True)
+                forecast_err.append((ahead.float().cpu() - batch["future_speed"]).abs())
+            else:
+                pred = model(*inputs)
+            preds.append(pred.float().cpu())
         targets.append(target.cpu())
         episodes.append(torch.as_tensor(batch["episode"]))
         steps.append(torch.as_tensor(batch["step"]))
@@ -381,8 +405,12 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
     mae = (pred - target).abs().mean(0)
     # The median minimises the L1 error of a constant: the baseline a model must beat.
     const = (target - target.median(0).values).abs().mean(0)
+    # The forecast's MAE in m/s, per horizon, beside the driving metrics (not in val_loss,
+    # which stays comparable between runs with and without it).
+    forecast = torch.cat(forecast_err).mean(0).tolist() if forecast_err else []
     return {"val_loss": float(tc.lambda_steer * mae[0] + tc.lambda_accel * mae[1]),
             "val_mae_steer": float(mae[0]), "val_mae_accel": float(mae[1]),
+            "val_mae_forecast_mps": forecast,
             "const_mae_steer": float(const[0]), "const_mae_accel": float(const[1]),
             "pred": pred.numpy(), "target": target.numpy(),
             "episode": torch.cat(episodes).numpy(), "step": torch.cat(steps).numpy()}
@@ -460,6 +488,9 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
                        "another --out / --name")
     if config is None:
         raise BidError("no config: pass a preset or --resume an existing run")
+    if (config.train.lambda_forecast > 0) != bool(config.model.forecast_s):
+        raise BidError("a speed forecast needs both its head (model.forecast_s) and its loss weight "
+                       "(train.lambda_forecast); set both with --forecast WEIGHT")
     start_from, diff, fresh = None, [], []
     if init is not None:
         if resume:
@@ -467,7 +498,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         start_from = load_checkpoint(init)
         theirs = RunConfig.from_dict(start_from["config"]).model
         diff = [f.name for f in dataclasses.fields(theirs) if getattr(theirs, f.name) != getattr(config.model, f.name)]
-        if set(diff) - VARIANT_FIELDS:
+        if set(diff) - INIT_FIELDS:
             raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
                            f"train with its preset and flags, or start from scratch")
     tc = config.train
@@ -511,8 +542,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if fresh:
             meta["init"]["fresh"] = fresh
             if dist.main:
-                print(f"--init {init}: a {theirs.variant} model; this {config.model.variant} one starts "
-                      f"{len(fresh)} tensors afresh: {', '.join(fresh)}")
+                print(f"--init {init}: a {theirs.variant} model ({', '.join(diff)} differ); this "
+                      f"{config.model.variant} one starts {len(fresh)} tensors afresh: {', '.join(fresh)}")
     elif ckpt is not None and "init" in ckpt:
         meta["init"] = ckpt["init"]
     if dist.main:
@@ -560,6 +591,10 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         row = {"epoch": epoch + 1, "train_loss": loss_sum / max(samples, 1)}
         nan = math.nan
         row.update({k: (val[k] if val else nan) for k in METRIC_COLUMNS[2:7]})
+        # The forecast's MAE over all its horizons (per horizon in the log); None (an empty
+        # cell) without one.
+        per_horizon = val["val_mae_forecast_mps"] if val else []
+        row["val_mae_forecast_mps"] = float(np.mean(per_horizon)) if per_horizon else None
         row.update(lr=lr, samples_per_s=samples / train_s, time_s=time.perf_counter() - t0)
         history.append(row)
         score = row["val_loss"] if val else row["train_loss"]
@@ -578,6 +613,9 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         log.info("epoch %d/%d: train %.4f, val %.4f (MAE steer %.4f, accel %.4f), %.0f samples/s",
                  epoch + 1, tc.epochs, row["train_loss"], row["val_loss"], row["val_mae_steer"],
                  row["val_mae_accel"], row["samples_per_s"])
+        if val and val["val_mae_forecast_mps"]:
+            log.info("speed forecast MAE at %s s: %s m/s", "/".join(f"{t:g}" for t in config.model.forecast_s),
+                     "/".join(f"{e:.2f}" for e in val["val_mae_forecast_mps"]))
         if dist.world > 1:
             torch.distributed.barrier()
     return history
@@ -598,7 +636,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     flags = {"--variant": args.variant, "--epochs": args.epochs, "--batch-size": args.batch_size,
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
              "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
-             "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead}
+             "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
+             "--forecast": args.forecast}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -631,6 +670,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         tc = dataclasses.replace(tc, augment=args.augment)
     if args.hard_brake is not None:
         tc = dataclasses.replace(tc, hard_brake=args.hard_brake)
+    if args.forecast is not None:
+        if not args.forecast >= 0:
+            raise BidError(f"--forecast is the weight of the speed forecast's loss, 0 or more; got {args.forecast}")
+        model = dataclasses.replace(model, forecast_s=FORECAST_S if args.forecast > 0 else ())
+        tc = dataclasses.replace(tc, lambda_forecast=args.forecast)
     return RunConfig(model, tc)
 
 

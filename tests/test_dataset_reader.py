@@ -221,3 +221,34 @@ def test_reader_trains_on_anticipated_braking_and_validates_on_recorded_labels(r
     assert [train[i]["accel"] for i in range(len(train))] == pytest.approx(early[train.rows].tolist())
     assert [val[i]["accel"] for i in range(len(val))] == pytest.approx(val.index.accel[val.rows].tolist())
     assert open_recordings(recorded, (48, 144), 0.5, 0)[0].accel_labels is None
+
+
+def test_future_speeds_hold_the_last_speed_at_an_episodes_end_or_a_gap():
+    import numpy as np
+
+    from bid_model.recordings import future_speeds
+
+    ix = _fake_index([1.0, 2.0, 3.0, 4.0, 5.0, 7.0, 8.0], [0.0] * 7, [0] * 5 + [1] * 2)
+    got = future_speeds(ix, (1, 3))
+    assert got.dtype == np.float32 and got.shape == (7, 2)
+    # Episode 0 runs to 5 m/s and ends; episode 1 is not read into it.
+    assert got[:, 0].tolist() == [2.0, 3.0, 4.0, 5.0, 5.0, 8.0, 8.0]
+    assert got[:, 1].tolist() == [4.0, 5.0, 5.0, 5.0, 5.0, 8.0, 8.0]
+    # Frames missing after step 1 (a gap) end the run as an episode's end does.
+    ix.step[2:5] += 4
+    assert future_speeds(ix, (3,))[:, 0].tolist() == [2.0, 2.0, 5.0, 5.0, 5.0, 8.0, 8.0]
+    assert future_speeds(ix, ()).shape == (7, 0)
+
+
+def test_reader_gives_the_speeds_ahead_to_train_and_validate_the_forecast_on(recorded):
+    from bid_model.recordings import future_speeds
+
+    train, val, desc = open_recordings(recorded, (48, 144), 0.5, 0, forecast_steps=(2, 5))
+    assert desc["forecast_steps"] == [2, 5]
+    want = future_speeds(train.index, (2, 5))
+    for data in (train, val):
+        for i in (0, len(data) // 2, len(data) - 1):
+            sample = data[i]
+            check_sample(sample, (48, 144))
+            assert sample["future_speed"].tolist() == pytest.approx(want[data.rows[i]].tolist())
+    assert "future_speed" not in open_recordings(recorded, (48, 144), 0.5, 0)[0][0]

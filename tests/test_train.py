@@ -332,3 +332,57 @@ def test_bid_average_is_the_weighted_mean_of_two_fine_tunings(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0], err
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_speed_forecast_trains_the_network_and_driving_ignores_it(tmp_path, capsys):
+    """--forecast adds a head that forecasts the speed ahead; its loss reaches the shared
+    network, the metrics report its error, and the control output stays what it was."""
+    plain = quick_run(1)
+    forecast = RunConfig(dataclasses.replace(plain.model, forecast_s=(1.0, 2.0)),
+                         dataclasses.replace(plain.train, lambda_forecast=0.5))
+    train(tmp_path / "plain", plain, synthetic=True, progress=False)
+    history = train(tmp_path / "fc", forecast, synthetic=True, progress=False,
+                    init=tmp_path / "plain" / "last.pt")
+    assert history[-1]["val_mae_forecast_mps"] > 0
+    rows = list(csv.DictReader((tmp_path / "fc" / "metrics.csv").open()))
+    assert float(rows[-1]["val_mae_forecast_mps"]) == pytest.approx(history[-1]["val_mae_forecast_mps"], rel=1e-4)
+    tuned = load_checkpoint(tmp_path / "fc" / "last.pt")
+    assert {k for k in tuned["init"]["fresh"] if not k.startswith("mean_")} == {
+        k for k in tuned["model"] if k.startswith("forecast_head.")}
+    assert "forecast_s differ" in capsys.readouterr().out
+    # The same fine-tuning without the forecast's loss ends elsewhere in the shared network.
+    again = RunConfig(plain.model, plain.train)
+    train(tmp_path / "again", again, synthetic=True, progress=False, init=tmp_path / "plain" / "last.pt")
+    other = load_checkpoint(tmp_path / "again" / "last.pt")["model"]
+    assert not torch.allclose(other["areas.V1.conv1.0.weight"], tuned["model"]["areas.V1.conv1.0.weight"])
+    # Driving reads (steer, accel) alone; forecast=True adds the speeds ahead, in m/s.
+    model, _ = load_model(tmp_path / "fc" / "last.pt", preset="tiny")
+    sample = synthetic_split(4, (32, 96), 0.0, 0)[0][0]
+    inputs = (sample["frame"][None], sample["prev_frame"][None], torch.eye(6)[[3]])
+    with torch.no_grad():
+        control = model(*inputs)
+        both, ahead = model(*inputs, forecast=True)
+    assert control.shape == (1, 2) and torch.equal(control, both) and ahead.shape == (1, 2)
+    with pytest.raises(BidError, match="no speed forecast"):
+        BID(plain.model).forward_forecast({"MPC": torch.zeros(1, 3, 16)})
+    half = RunConfig(forecast.model, plain.train)
+    with pytest.raises(BidError, match="--forecast WEIGHT"):
+        train(tmp_path / "half", half, synthetic=True, progress=False)
+
+
+def test_forecast_flag_sets_head_and_weight_together(tmp_path, capsys):
+    import argparse
+
+    from bid_model.cli import add_train_arguments
+    from bid_model.config import FORECAST_S
+    from bid_model.train import config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--forecast", "0.5"]))
+    assert run.model.forecast_s == FORECAST_S and run.train.lambda_forecast == 0.5
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--forecast", "0"]))
+    assert run.model.forecast_s == () and run.train.lambda_forecast == 0.0
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--forecast", "-1",
+                "--out", str(tmp_path / "x")]) == 2
+    assert "--forecast is the weight" in capsys.readouterr().err
