@@ -17,7 +17,7 @@ import torch
 from bid_model.checkpoint import load_model
 from bid_model.data import command_one_hot, prepare_frame
 from bid_sim.agents import EpisodeInfo, Observation
-from bid_sim.ego import Control
+from bid_sim.ego import Control, EgoParams
 from bid_sim.errors import BidError
 
 
@@ -26,14 +26,24 @@ class BIDAgent:
 
     lesions: {area: "zero" | "mean"} switched off at inference (see BID.set_lesions).
     gradcam_area: with `overlay`, the area whose sign-aware Grad-CAM of steer is drawn.
+    forecast_brake: for a model trained with `--forecast`, brake at least as hard as it takes
+    to reach the speed the network forecasts 1 s ahead, times this gain (0: drive on the
+    control head alone). The control head and the forecast are two readings of the same
+    network, as the control and trajectory branches of TCP (Wu et al. 2022) are.
     """
 
     uses_camera = True
 
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
-                 threads: int = 1, gradcam_area: str = "IT"):
+                 threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
+        if not forecast_brake >= 0:
+            raise BidError(f"forecast_brake is a gain, 0 or more; got {forecast_brake}")
+        if forecast_brake > 0 and not self.config.model.forecast_s:
+            raise BidError(f"{checkpoint} has no speed forecast to brake by; train it with --forecast "
+                           "or drop forecast_brake")
+        self.forecast_brake = forecast_brake
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
@@ -53,10 +63,17 @@ class BIDAgent:
         prev = self._prev if self._prev is not None else frame  # frame t at an episode's start
         cmd = command_one_hot(int(obs.command))
         speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
-        out = self.model(frame, prev, cmd, speed)[0]
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
-        return Control(steer=float(out[0]), accel=float(out[1]))
+        if self.forecast_brake <= 0:
+            out = self.model(frame, prev, cmd, speed)[0]
+            return Control(steer=float(out[0]), accel=float(out[1]))
+        control, ahead = self.model(frame, prev, cmd, speed, forecast=True)
+        # The deceleration to the forecast speed of the first horizon, as a share of full braking.
+        horizon_s = self.config.model.forecast_s[0]
+        need = (float(obs.speed_mps) - float(ahead[0, 0])) / horizon_s / EgoParams.max_brake_mps2
+        accel = min(float(control[0, 1]), -self.forecast_brake * need) if need > 0 else float(control[0, 1])
+        return Control(steer=float(control[0, 0]), accel=max(accel, -1.0))
 
     def overlay(self, frame: np.ndarray) -> np.ndarray | None:
         """The last step's Grad-CAM of steer over the three cameras (for evaluation videos)."""

@@ -132,10 +132,13 @@ def _evaluate(args: argparse.Namespace) -> int:
     densities = tuple(d.strip() for d in args.density.split(",") if d.strip())
     routes = [int(r) for r in args.routes.split(",")] if args.routes else None
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
+    if args.forecast_brake is not None and args.agent != "bid":
+        raise BidError(f"--forecast-brake is an option of --agent bid, not of {args.agent!r}; drop it")
+    options = {"forecast_brake": args.forecast_brake} if args.forecast_brake else None
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
                        video=args.video, progress=not args.json, max_steps=args.max_steps,
-                       ray_address=args.ray)
+                       ray_address=args.ray, options=options)
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
@@ -265,6 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=int, default=3)
     ev.add_argument("--agent", default="expert", help="expert, lanefollow, bid or module:Class")
     ev.add_argument("--checkpoint", default=None, help="the model checkpoint for --agent bid")
+    ev.add_argument("--forecast-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --forecast: brake at least GAIN times as "
+                         "hard as reaching its forecast speed 1 s ahead takes (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

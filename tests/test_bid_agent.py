@@ -11,6 +11,7 @@ from bid_model.config import tiny
 from bid_model.train import train
 from bid_sim.cli import main
 from bid_sim.episode import run_episode
+from bid_sim.errors import BidError
 from bid_sim.evaluate import load_agent
 from bid_sim.render import Renderer
 from bid_sim.town_map import load_town_map
@@ -114,3 +115,37 @@ def test_results_of_a_checkpoint_rewritten_in_place_are_not_resumed(checkpoint, 
     assert main(["export", str(checkpoint.parent), "--which", "last.pt", "--out", str(ckpt)]) == 0
     assert main(args) == 2
     assert "checkpoint file changed" in capsys.readouterr().err
+
+
+def test_forecast_brake_brakes_to_the_forecast_speed(checkpoint, tmp_path, capsys):
+    """With --forecast-brake the agent brakes at least as hard as reaching the speed its
+    network forecasts 1 s ahead takes; without it, it drives on the control head alone."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from bid_model.config import RunConfig
+    from bid_model.data import command_one_hot, prepare_frame
+    from bid_sim.agents import Observation
+
+    cfg = tiny()
+    run = RunConfig(dataclasses.replace(cfg.model, forecast_s=(1.0, 2.0)),
+                    dataclasses.replace(cfg.train.with_epochs(1), lambda_forecast=0.5))
+    train(tmp_path / "fc", run, synthetic=True, progress=False)
+    frame = np.random.default_rng(0).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    plain, braking = BIDAgent(tmp_path / "fc" / "last.pt"), BIDAgent(tmp_path / "fc" / "last.pt", forecast_brake=1.0)
+    x = prepare_frame(frame, run.model.frame_hw)[None]
+    with torch.no_grad():
+        control, ahead = braking.model(x, x, command_one_hot(4), forecast=True)
+    fast = float(ahead[0, 0]) + 4.0  # 4 m/s above the forecast: 0.5 of full braking (8 m/s²)
+    obs = Observation(frame, frame, 4, fast, None)
+    assert plain.act(obs).accel == pytest.approx(float(control[0, 1]), abs=1e-6)
+    assert braking.act(obs).accel == pytest.approx(min(float(control[0, 1]), -0.5), abs=1e-5)
+    slow = Observation(frame, frame, 4, max(float(ahead[0, 0]) - 1.0, 0.0), None)
+    braking.reset(None)
+    assert braking.act(slow).accel == pytest.approx(float(control[0, 1]), abs=1e-6)
+    with pytest.raises(BidError, match="no speed forecast"):
+        BIDAgent(checkpoint, forecast_brake=1.0)
+    assert main(["evaluate", "--agent", "expert", "--forecast-brake", "1", "--out", str(tmp_path / "x")]) == 2
+    assert "option of --agent bid" in capsys.readouterr().err
