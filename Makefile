@@ -33,6 +33,10 @@ DAGGER_EPOCHS ?= 3
 AUGMENT ?= 0
 # Times each frame of hard steering or braking is trained on (the shipped BID: 3 in round 7).
 HARD_REPEAT ?= 1
+# BENDS=1: the round drives only routes that take a corner of the road early (bid record --bends).
+BENDS ?=
+# FORECAST=W: train the auxiliary speed forecast too, its loss weighted W (the shipped BID: 0.5).
+FORECAST ?=
 
 .PHONY: demo test bench towns clean lint record evaluate train dagger reproduce ablations multitown
 
@@ -83,17 +87,19 @@ record: $(STAMP)
 # fine-tuned from STUDENT on everything under data/town01 (demonstrations and DAgger rounds).
 dagger: $(STAMP)
 	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) --workers $(WORKERS) \
-		--out data/town01/dagger$(ROUND)
+		$(if $(BENDS),--bends) --out data/town01/dagger$(ROUND)
 	$(BID) train --preset small --data data/town01 --name $(DAGGER_RUN) \
 		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT) \
-		--hard-repeat $(HARD_REPEAT))
+		--hard-repeat $(HARD_REPEAT) $(if $(FORECAST),--forecast $(FORECAST)))
 
 # Everything from scratch (hours on 2 cores; see README "Reproducing"): demonstrations,
 # training, six DAgger rounds (as the shipped checkpoint had, the last three augmented), the
-# weight average of the fifth and sixth, a seventh round from it with hard frames repeated
-# (what is shipped), the Town02 NoCrash for the expert and the new BID, and the result
-# tables. The shipped checkpoint is left alone: copy runs/reproduce_dagger7/last.pt over it
-# with `bid export` only if it drives better.
+# weight average of the fifth and sixth, a seventh round from it with hard frames repeated,
+# a round on routes with corners (seed 9, as data/town01/dagger9, not 8: `make ablations`
+# records its own round 8) that also trains the speed forecast (what is shipped),
+# the Town02 NoCrash for the expert and the new BID, and the result tables. The shipped
+# checkpoint is left alone: copy runs/reproduce_corners/last.pt over it with `bid export`
+# only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
@@ -108,11 +114,13 @@ reproduce: $(STAMP)
 		runs/reproduce_dagger6/last.pt --out runs/reproduce_soup56/last.pt)
 	$(MAKE) dagger STUDENT=runs/reproduce_soup56/last.pt ROUND=7 DAGGER_RUN=reproduce_dagger7 DAGGER_EPOCHS=1 \
 		AUGMENT=0.8 HARD_REPEAT=3 EPISODES=96
+	$(MAKE) dagger STUDENT=runs/reproduce_dagger7/last.pt ROUND=9 DAGGER_RUN=reproduce_corners DAGGER_EPOCHS=1 \
+		AUGMENT=0.8 HARD_REPEAT=3 EPISODES=48 BENDS=1 FORECAST=0.5
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_dagger7/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_dagger7/last.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_corners/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_corners/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 
