@@ -18,8 +18,9 @@ Dataset contract. Training reads any `torch.utils.data.Dataset` whose items are 
 | `accel`      | float32 in [−1, 1], >0 throttle   | expert label                               |
 | `episode`    | int                               | episode index (splits, sequence plots)     |
 | `step`       | int                               | step within the episode (0.1 s each)       |
-| `future_speed` | float32 tensor (K,), optional   | speed K horizons ahead, m/s: the targets   |
-|              |                                   | of the speed forecast (`forecast_s`)       |
+| `future_speed` | float32 tensor (K,)             | optional: the speed at each of the K       |
+|              |                                   | horizons of `forecast_s`, m/s (the speed   |
+|              |                                   | forecast's targets; needed by --forecast)  |
 
 Train and validation sets are split by episode (`split_episodes`), never by frame, so that
 neighbouring, nearly identical frames do not leak into validation. `check_sample` validates

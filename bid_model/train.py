@@ -507,7 +507,11 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     dist = init_distributed(device)
     dev = pick_device(device, dist)
     train_set, val_set, description = open_data(config, data, synthetic)
-    check_sample(train_set[0], config.model.frame_hw)
+    first = train_set[0]
+    check_sample(first, config.model.frame_hw)
+    if tc.lambda_forecast > 0 and tuple(getattr(first.get("future_speed"), "shape", ())) != (len(config.model.forecast_s),):
+        raise BidError(f"--forecast needs dataset items with 'future_speed', {len(config.model.forecast_s)} speeds "
+                       "ahead (see the contract in bid_model/data.py)")
 
     shards = dist.world if shards is None else shards
     torch.manual_seed(tc.seed)

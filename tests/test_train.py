@@ -334,7 +334,7 @@ def test_bid_average_is_the_weighted_mean_of_two_fine_tunings(tmp_path, capsys):
     assert not (tmp_path / "x.pt").exists()
 
 
-def test_speed_forecast_trains_the_network_and_driving_ignores_it(tmp_path, capsys):
+def test_speed_forecast_trains_the_network_and_driving_ignores_it(tmp_path, capsys, monkeypatch):
     """--forecast adds a head that forecasts the speed ahead; its loss reaches the shared
     network, the metrics report its error, and the control output stays what it was."""
     plain = quick_run(1)
@@ -368,6 +368,11 @@ def test_speed_forecast_trains_the_network_and_driving_ignores_it(tmp_path, caps
     half = RunConfig(forecast.model, plain.train)
     with pytest.raises(BidError, match="--forecast WEIGHT"):
         train(tmp_path / "half", half, synthetic=True, progress=False)
+    # Data without the speeds ahead gets one clear line, not a KeyError mid-epoch.
+    monkeypatch.setattr("bid_model.train.open_data", lambda config, data, synthetic: synthetic_split(
+        20, config.model.frame_hw, 0.2, 0))
+    with pytest.raises(BidError, match="'future_speed'"):
+        train(tmp_path / "nofc", forecast, synthetic=True, progress=False)
 
 
 def test_forecast_flag_sets_head_and_weight_together(tmp_path, capsys):
