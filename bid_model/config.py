@@ -27,6 +27,9 @@ VARIANTS: dict[str, dict[str, bool]] = {
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
 INIT_FIELDS = VARIANT_FIELDS | {"forecast_s"}
+# Fields `--init` adapts to: the input size (the token grids' positional embeddings are
+# resized, model.resize_grid_tokens; the convolutions do not depend on it).
+RESIZE_FIELDS = frozenset({"frame_hw"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.

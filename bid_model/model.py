@@ -34,6 +34,41 @@ SPEED_SCALE_MPS = 10.0  # speed is fed as speed_mps / 10, about unit scale
 _PIXEL_MEAN, _PIXEL_STD = 0.45, 0.25
 
 
+def grid_hw(frame_hw: tuple[int, int]) -> dict[str, tuple[int, int]]:
+    """(rows, cols) of the feature grid of each perception area for input `frame_hw`."""
+    h, w = frame_hw
+    grids = {"V1": (half(half(h)), half(half(w)))}
+    for name, prev in (("V2", "V1"), ("V4", "V2"), ("IT", "V4")):
+        grids[name] = (half(grids[prev][0]), half(grids[prev][1]))
+    grids["MT"] = grids["IT"]
+    return grids
+
+
+def resize_grid_tokens(state: Mapping[str, torch.Tensor], from_hw: tuple[int, int],
+                       model: nn.Module) -> dict[str, torch.Tensor]:
+    """`state` (of a model with input `from_hw`) with the positional embeddings of its token
+    grids (VPC, DPC, the dorsal tokens) resized, bilinearly, to `model`'s IT grid, so a
+    network trained at one input size can start one at another (`bid train --init
+    --frame-hw`). Every other tensor is passed through as it is."""
+    rows, cols = grid_hw(from_hw)["IT"]
+    own = model.state_dict()
+    out = dict(state)
+    for name, module in model.named_modules():
+        key = f"{name}.pos_embed" if name else "pos_embed"
+        if not isinstance(module, GridTokens) or key not in state or state[key].shape == own[key].shape:
+            continue
+        src = state[key]
+        if src.shape[1] != rows * cols:
+            raise BidError(f"{key} holds {src.shape[1]} tokens, not the {rows}×{cols} grid of a "
+                           f"{from_hw[0]}×{from_hw[1]} input")
+        new_rows, new_cols = grid_hw(model.config.frame_hw)["IT"]
+        grid = src.reshape(1, rows, cols, -1).permute(0, 3, 1, 2)
+        grid = nn.functional.interpolate(grid, size=(new_rows, new_cols), mode="bilinear",
+                                         align_corners=False)
+        out[key] = grid.permute(0, 2, 3, 1).reshape(1, new_rows * new_cols, -1).contiguous()
+    return out
+
+
 class BID(nn.Module):
     """The whole network; which streams exist follows `config` (the paper's variants)."""
 
@@ -77,12 +112,7 @@ class BID(nn.Module):
 
     def grid_hw(self) -> dict[str, tuple[int, int]]:
         """(rows, cols) of the feature grid of each perception area."""
-        h, w = self.config.frame_hw
-        grids = {"V1": (half(half(h)), half(half(w)))}
-        for name, prev in (("V2", "V1"), ("V4", "V2"), ("IT", "V4")):
-            grids[name] = (half(grids[prev][0]), half(grids[prev][1]))
-        grids["MT"] = grids["IT"]
-        return grids
+        return grid_hw(self.config.frame_hw)
 
     def output_shapes(self) -> dict[str, tuple[int, ...]]:
         """Per-sample output shape of each area present in this variant."""

@@ -45,9 +45,9 @@ from tqdm import tqdm
 
 from bid_model.augment import photometric
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
-from bid_model.config import FORECAST_S, INIT_FIELDS, RunConfig, TrainConfig, preset, with_variant
+from bid_model.config import FORECAST_S, INIT_FIELDS, RESIZE_FIELDS, RunConfig, TrainConfig, preset, with_variant
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.model import BID, SPEED_SCALE_MPS
+from bid_model.model import BID, SPEED_SCALE_MPS, resize_grid_tokens
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
 from bid_sim.world import DT_S
@@ -499,7 +499,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         start_from = load_checkpoint(init)
         theirs = RunConfig.from_dict(start_from["config"]).model
         diff = [f.name for f in dataclasses.fields(theirs) if getattr(theirs, f.name) != getattr(config.model, f.name)]
-        if set(diff) - INIT_FIELDS:
+        if set(diff) - INIT_FIELDS - RESIZE_FIELDS:
             raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
                            f"train with its preset and flags, or start from scratch")
     tc = config.train
@@ -536,8 +536,11 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         opt.load_state_dict(ckpt["optimizer"])
         sched.load_state_dict(ckpt["scheduler"])
         start, history, best = ckpt["epoch"], list(ckpt["history"]), ckpt["best_val_loss"]
-    elif start_from is not None and diff:  # another variant: the tensors both have
-        fresh = load_shared_weights(model, start_from["model"])
+    elif start_from is not None and diff:  # another variant or input size: the tensors both have
+        state = start_from["model"]
+        if "frame_hw" in diff:
+            state = resize_grid_tokens(state, tuple(theirs.frame_hw), model)
+        fresh = load_shared_weights(model, state)
     elif start_from is not None:
         model.load_state_dict(start_from["model"])
 
@@ -642,7 +645,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
              "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
-             "--forecast": args.forecast}
+             "--forecast": args.forecast, "--frame-hw": args.frame_hw}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -654,6 +657,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         model = with_variant(model, args.variant)
     if args.speed_input is not None:
         model = dataclasses.replace(model, speed_input=args.speed_input)
+    if args.frame_hw is not None:
+        model = dataclasses.replace(model, frame_hw=parse_frame_hw(args.frame_hw))
     if args.epochs is not None:
         tc = tc.with_epochs(args.epochs)
     for flag, value, field, ok in (("--batch-size", args.batch_size, "batch_size", 2),
@@ -681,6 +686,14 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         model = dataclasses.replace(model, forecast_s=FORECAST_S if args.forecast > 0 else ())
         tc = dataclasses.replace(tc, lambda_forecast=args.forecast)
     return RunConfig(model, tc)
+
+
+def parse_frame_hw(text: str) -> tuple[int, int]:
+    """`--frame-hw 96x288` → (96, 288): rows × columns of the network's input."""
+    rows, sep, cols = text.lower().partition("x")
+    if not (sep and rows.isdigit() and cols.isdigit() and int(rows) >= 32 and int(cols) >= 32):
+        raise BidError(f"--frame-hw is ROWSxCOLS, each at least 32 (e.g. 96x288); got {text!r}")
+    return int(rows), int(cols)
 
 
 def run_dir(args: argparse.Namespace, config: RunConfig | None) -> Path:

@@ -280,6 +280,37 @@ def test_init_starts_another_variant_from_the_areas_they_share(tmp_path, capsys)
         train(tmp_path / "x", other, synthetic=True, progress=False, init=tmp_path / "full" / "last.pt")
 
 
+def test_init_starts_a_larger_input_from_a_checkpoint(tmp_path, capsys):
+    """`--frame-hw` with `--init`: the convolutions carry over as they are, and the token grids'
+    positional embeddings are resized to the new IT grid (a 1×3 grid becomes 2×6), bilinearly."""
+    first = quick_run(1)
+    train(tmp_path / "a", first, synthetic=True, progress=False)
+    start = load_checkpoint(tmp_path / "a" / "last.pt")["model"]
+    assert BID(first.model).grid_hw()["IT"] == (1, 3)
+    still = dataclasses.replace(first.train, lr=1e-20, weight_decay=0.0)
+    larger = RunConfig(dataclasses.replace(first.model, frame_hw=(64, 192)), still)
+    train(tmp_path / "b", larger, synthetic=True, progress=False, init=tmp_path / "a" / "last.pt")
+    tuned = load_checkpoint(tmp_path / "b" / "last.pt")
+    weights = [name for name, _ in BID(larger.model).named_parameters()]
+    grids = [k for k in weights if k.endswith("pos_embed")]
+    assert grids == ["areas.VPC.pos_embed", "areas.DPC.tokens.pos_embed"]
+    assert all(torch.allclose(start[k], tuned["model"][k]) for k in weights if k not in grids)
+    for k in grids:
+        old = start[k].reshape(1, 3, -1)
+        new = tuned["model"][k].reshape(2, 6, -1)
+        assert torch.allclose(new[0], new[1])  # one row of tokens spread over two
+        # The edges keep the edge tokens; each old token spreads over two columns' worth.
+        assert torch.allclose(new[:, 0], old[0, 0].expand(2, -1), atol=1e-6)
+        assert torch.allclose(new[:, -1], old[0, -1].expand(2, -1), atol=1e-6)
+        assert torch.allclose(new[0].mean(0), old[0].mean(0), atol=1e-6)
+        assert not torch.allclose(new[0, 0], new[0, -1])
+    assert all(k.startswith("mean_") for k in tuned["init"]["fresh"])
+    assert "frame_hw differ" in capsys.readouterr().out
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--frame-hw", "64", "--out",
+                str(tmp_path / "c")]) == 2
+    assert "--frame-hw is ROWSxCOLS" in capsys.readouterr().err
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/stat"), reason="needs Linux /proc/stat")
 def test_busy_cores_counts_a_running_process_at_once(tmp_path):
     """Training picks its torch threads from the cores busy right now, not the load average
