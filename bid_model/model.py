@@ -51,6 +51,7 @@ def resize_grid_tokens(state: Mapping[str, torch.Tensor], from_hw: tuple[int, in
     network trained at one input size can start one at another (`bid train --init
     --frame-hw`). Every other tensor is passed through as it is."""
     rows, cols = grid_hw(from_hw)["IT"]
+    new_rows, new_cols = grid_hw(model.config.frame_hw)["IT"]
     own = model.state_dict()
     out = dict(state)
     for name, module in model.named_modules():
@@ -61,7 +62,6 @@ def resize_grid_tokens(state: Mapping[str, torch.Tensor], from_hw: tuple[int, in
         if src.shape[1] != rows * cols:
             raise BidError(f"{key} holds {src.shape[1]} tokens, not the {rows}×{cols} grid of a "
                            f"{from_hw[0]}×{from_hw[1]} input")
-        new_rows, new_cols = grid_hw(model.config.frame_hw)["IT"]
         grid = src.reshape(1, rows, cols, -1).permute(0, 3, 1, 2)
         grid = nn.functional.interpolate(grid, size=(new_rows, new_cols), mode="bilinear",
                                          align_corners=False)
