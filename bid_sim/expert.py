@@ -83,6 +83,9 @@ class ExpertConfig:
     lane_change_min_gap_m: float = 4.0
 
 
+CROSSING_STEP_M = 0.1  # the route is sampled this finely to find where it crosses crossings
+
+
 # ----------------------------------------------------------------------------- town facts
 
 
@@ -285,15 +288,20 @@ def _curvature(heading: np.ndarray) -> np.ndarray:
 
 
 def _route_crossings(polyline: np.ndarray, facts: _TownFacts) -> tuple[tuple[float, float], ...]:
-    """Route s intervals where the route runs over a pedestrian crossing."""
+    """Route s intervals where the route runs over a pedestrian crossing, one per pass: a
+    route that comes by the same crossing twice (round a block) has two intervals."""
     line = LineString(polyline)
+    s_vertex = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(polyline, axis=0).T))])
+    s = np.arange(0.0, s_vertex[-1] + CROSSING_STEP_M, CROSSING_STEP_M)
+    x, y = np.interp(s, s_vertex, polyline[:, 0]), np.interp(s, s_vertex, polyline[:, 1])
     out = []
     for ring in facts.map.crossings:
-        hit = line.intersection(Polygon(ring))
-        if hit.is_empty:
+        polygon = Polygon(ring)
+        if not line.intersects(polygon):
             continue
-        s = [line.project(shapely.Point(c)) for g in shapely.get_parts(hit) for c in g.coords]
-        out.append((min(s), max(s)))
+        inside = np.concatenate([[False], shapely.contains_xy(polygon, x, y), [False]])
+        edges = np.flatnonzero(np.diff(inside.astype(np.int8)))
+        out += [(float(s[a]), float(s[b - 1])) for a, b in zip(edges[::2], edges[1::2])]
     return tuple(sorted(out))
 
 
@@ -727,22 +735,27 @@ class Expert:
                     path_heading: np.ndarray, walking: np.ndarray, s_c: float, s_f: float
                     ) -> list[_Constraint]:
         """Pedestrians walking beside the car, its way, towards a crossing it is about to
-        drive over (as it turns): they may step onto it as the car gets there."""
+        drive over as it turns: walking straight on, they step onto it as the car gets there.
+        A crossing the car drives over without turning runs along their way: they keep to the
+        kerb beside it."""
         ahead = [(a, b) for a, b in self.plan.crossings if s_f - 0.3 < a < s_f + 12.0]
         if not ahead:
             return []
-        c_in, c_out = ahead[0]
         peds = snap.pedestrians
         v = snap.ego.speed_mps
-        same_way = np.cos(peds.yaw_rad[idx] - path_heading) > 0.5
-        beside = walking & same_way & (s > s_c - 8.0) & (s < c_in + 1.0) & (np.abs(lat) < 4.5)
+        yaw = peds.yaw_rad[idx]
+        same_way = np.cos(yaw - path_heading) > 0.5
         out = []
-        for j in np.nonzero(beside)[0]:
-            t_ped = max(c_in - s[j], 0.0) / max(float(peds.speed_mps[idx[j]]), 0.5)
-            t_clear = _travel_time(c_out - s_f + self.params.length_m, v, 1.5, max(v, 4.0))
-            if t_ped < t_clear + 1.0:
-                out.append(_Constraint(max(c_in - self.cfg.crossing_gap_m - s_f, 0.1), 0.0, 0.3,
-                                       0.5, f"pedestrian {peds.ids[idx[j]]} beside"))
+        for c_in, c_out in ahead:
+            crossing_heading = self.plan.heading[self.plan.index(0.5 * (c_in + c_out))]
+            onto = np.abs(np.cos(yaw - crossing_heading)) < 0.5
+            beside = walking & same_way & onto & (s > s_c - 8.0) & (s < c_in + 1.0) & (np.abs(lat) < 4.5)
+            for j in np.nonzero(beside)[0]:
+                t_ped = max(c_in - s[j], 0.0) / max(float(peds.speed_mps[idx[j]]), 0.5)
+                t_clear = _travel_time(c_out - s_f + self.params.length_m, v, 1.5, max(v, 4.0))
+                if t_ped < t_clear + 1.0:
+                    out.append(_Constraint(max(ahead[0][0] - self.cfg.crossing_gap_m - s_f, 0.1), 0.0,
+                                           0.3, 0.5, f"pedestrian {peds.ids[idx[j]]} beside"))
         return out
 
     # -- signals --------------------------------------------------------------------------
@@ -845,12 +858,25 @@ class Expert:
                         gap = entry.gap_m
                     else:
                         gap = c.s_in - 1.0 - s_f
+                        # Not standing on a crossing, where pedestrians walk into the car
+                        # when theirs turns green, if it can still stop before it.
+                        off = self._off_crossings(c.s_in - 1.0, s_f) - s_f
+                        if v * v / (2.0 * 6.0) <= off < gap:
+                            gap = off
                     # Committed: too close to stop before the zone; clear it instead.
                     if gap < v * v / (2.0 * 6.0) or (not before and c.s_in - s_f < 0.5):
                         continue
                     out.append(_Constraint(max(gap, 0.1), 0.0, 0.3, 0.4, f"yield to {veh.ids[i]}"))
                     return out
         return out
+
+    def _off_crossings(self, stop_s: float, s_f: float) -> float:
+        """The stop point (route s of the front bumper) moved back, if need be, so that the
+        car's body stands on no crossing it has not yet entered."""
+        for a, b in reversed(self.plan.crossings):
+            if s_f < a + 0.3 and a < stop_s and b > stop_s - self.params.length_m:
+                stop_s = a - self.cfg.crossing_gap_m
+        return stop_s
 
     def _vehicle_links(self, veh: Actors, i: int, node: str) -> list[tuple[_Link, float]]:
         """Links through the junction the vehicle may take, with its centre's position along

@@ -10,14 +10,17 @@ import shapely
 
 from bid_sim import metrics as m
 from bid_sim.episode import run_episode
-from bid_sim.expert import Expert, ExpertConfig, _idm, _TownFacts, _travel_time
-from bid_sim.routes import CHANGELANELEFT, RouteSpec, plan_spec, road_graph
-from bid_sim.snapshot import RED
+from types import SimpleNamespace
+
+from bid_sim.expert import Expert, ExpertConfig, _build_plan, _idm, _route_crossings, _TownFacts, _travel_time
+from bid_sim.routes import CHANGELANELEFT, RouteSpec, plan_spec, road_graph, route_by_index
+from bid_sim.snapshot import RED, Actors
 from bid_sim.town_map import load_town_map
 from bid_sim.towns import resolve_town
 
 LONG = RouteSpec("S1", 150.0, "S1", 300.0)  # Town02's long northern street, no junction
 THROUGH_J400 = RouteSpec("S1", 290.0, "-S0", 30.0)  # straight over the signalised J400
+RIGHT_AT_J400 = RouteSpec("S0", 90.0, "-S2", 20.0)  # a right turn there
 
 
 class Watched(Expert):
@@ -215,3 +218,58 @@ def test_a_walking_area_over_a_driving_lane_is_not_kerb():
     assert not shapely.contains_xy(facts.kerb, ped[:, 0], ped[:, 1]).any()  # ... yet in the road
     centres = np.concatenate([lane.centre for lane in facts.map.lanes if not lane.internal])
     assert not shapely.contains_xy(facts.kerb, centres[:, 0], centres[:, 1]).any()
+
+
+def _planned(town, spec) -> Expert:
+    """An expert holding the plan of a route, as reset() makes it, without a simulation."""
+    expert = Expert()
+    expert.facts = _TownFacts(load_town_map(town), road_graph(town.net_file))
+    route = plan_spec(road_graph(town.net_file), spec)
+    expert.plan = _build_plan(route.polyline, route, expert.facts, expert.cfg, town.speed_limit_mps)
+    return expert
+
+
+def test_a_route_past_the_same_crossing_twice_has_one_interval_per_pass(town02):
+    """Town02's route 1 goes round a block and over one crossing at about 20 m and again at
+    about 226 m: one interval for both made the expert take the whole way between for "on a
+    crossing", and drive on towards a pedestrian stepping onto it (normal, seed 0)."""
+    expert = _planned(town02, route_by_index(town02, 1))
+    crossings = _route_crossings(expert.plan.polyline, expert.facts)
+    assert all(0.5 < b - a < 8.0 for a, b in crossings)
+    assert any(a < 30.0 for a, _ in crossings) and any(220.0 < a < 240.0 for a, _ in crossings)
+    assert list(crossings) == sorted(crossings)
+
+
+def _walker_beside(expert, stop_gap_m: float):
+    """The ego standing stop_gap_m before the first crossing it reaches at J400, and a
+    pedestrian on the sidewalk to its right, beside its front, walking its way."""
+    plan = expert.plan
+    c_in = plan.crossings[0][0]
+    s_f = c_in - stop_gap_m
+    s_c = s_f - expert.params.length_m / 2
+    x, y = plan.point(s_c)
+    h = float(plan.heading[plan.index(s_f)])
+    px, py = plan.point(s_f)
+    ped = Actors(("walker",), np.array([[px + 3.6 * math.sin(h), py - 3.6 * math.cos(h)]]),
+                 np.array([h]), np.array([1.2]), np.array([[0.5, 0.6, 1.75]]), np.array([0]))
+    snap = SimpleNamespace(pedestrians=ped, ego=SimpleNamespace(x_m=x, y_m=y, speed_mps=0.0))
+    constraints, _ = expert._pedestrians(snap, s_c, s_f)
+    return [c.reason for c in constraints]
+
+
+def test_a_pedestrian_walking_beside_holds_a_right_turn_not_a_straight_drive(town02):
+    """Walking straight on, a pedestrian beside the car steps onto the crossing a right turn
+    drives over, not onto those the car drives straight over (they run along its way)."""
+    assert _walker_beside(_planned(town02, RIGHT_AT_J400), 1.0) == ["pedestrian walker beside"]
+    assert _walker_beside(_planned(town02, THROUGH_J400), 1.0) == []
+
+
+def test_a_stop_point_is_moved_off_a_crossing_not_yet_entered(town02):
+    expert = _planned(town02, THROUGH_J400)
+    a, b = expert.plan.crossings[0]
+    length, back = expert.params.length_m, a - expert.cfg.crossing_gap_m
+    assert expert._off_crossings(b + 1.0, s_f=a - 10.0) == pytest.approx(back)  # body on it
+    assert expert._off_crossings(a + 0.5, s_f=a - 10.0) == pytest.approx(back)  # front on it
+    assert expert._off_crossings(b + length + 0.5, s_f=a - 10.0) == b + length + 0.5  # beyond
+    assert expert._off_crossings(a - 3.0, s_f=a - 10.0) == a - 3.0  # before
+    assert expert._off_crossings(b + 1.0, s_f=a + 1.0) == b + 1.0  # on it already
