@@ -2,6 +2,7 @@
 traffic, determinism; and its pure helpers."""
 
 import math
+from types import SimpleNamespace
 
 import libsumo as traci
 import numpy as np
@@ -10,8 +11,6 @@ import shapely
 
 from bid_sim import metrics as m
 from bid_sim.episode import run_episode
-from types import SimpleNamespace
-
 from bid_sim.expert import Expert, ExpertConfig, _build_plan, _idm, _route_crossings, _TownFacts, _travel_time
 from bid_sim.routes import CHANGELANELEFT, RouteSpec, plan_spec, road_graph, route_by_index
 from bid_sim.snapshot import RED, Actors
@@ -240,12 +239,12 @@ def test_a_route_past_the_same_crossing_twice_has_one_interval_per_pass(town02):
     assert list(crossings) == sorted(crossings)
 
 
-def _walker_beside(expert, stop_gap_m: float):
-    """The ego standing stop_gap_m before the first crossing it reaches at J400, and a
+def _walker_beside(expert):
+    """The ego standing 1 m before the first crossing it reaches at J400, and a
     pedestrian on the sidewalk to its right, beside its front, walking its way."""
     plan = expert.plan
     c_in = plan.crossings[0][0]
-    s_f = c_in - stop_gap_m
+    s_f = c_in - 1.0
     s_c = s_f - expert.params.length_m / 2
     x, y = plan.point(s_c)
     h = float(plan.heading[plan.index(s_f)])
@@ -260,8 +259,8 @@ def _walker_beside(expert, stop_gap_m: float):
 def test_a_pedestrian_walking_beside_holds_a_right_turn_not_a_straight_drive(town02):
     """Walking straight on, a pedestrian beside the car steps onto the crossing a right turn
     drives over, not onto those the car drives straight over (they run along its way)."""
-    assert _walker_beside(_planned(town02, RIGHT_AT_J400), 1.0) == ["pedestrian walker beside"]
-    assert _walker_beside(_planned(town02, THROUGH_J400), 1.0) == []
+    assert _walker_beside(_planned(town02, RIGHT_AT_J400)) == ["pedestrian walker beside"]
+    assert _walker_beside(_planned(town02, THROUGH_J400)) == []
 
 
 def test_a_stop_point_is_moved_off_a_crossing_not_yet_entered(town02):
