@@ -359,7 +359,10 @@ def _route_lane_changes(route: Route, facts: _TownFacts) -> list[_LaneChange]:
             if q.junction or q.edge != p.edge:
                 break
             end = q.s1_m
-        out.append(_LaneChange(p.s0_m, p.s1_m, pieces[i - 1].lane_id, p.lane_id, end))
+        entry = pieces[i - 1].lane_id
+        if entry in facts.by_via:  # a change right after a junction: from the lane it leads onto
+            entry = facts.by_via[entry][0][0].outgoing
+        out.append(_LaneChange(p.s0_m, p.s1_m, entry, p.lane_id, end))
     return out
 
 

@@ -272,3 +272,17 @@ def test_a_stop_point_is_moved_off_a_crossing_not_yet_entered(town02):
     assert expert._off_crossings(b + length + 0.5, s_f=a - 10.0) == b + length + 0.5  # beyond
     assert expert._off_crossings(a - 3.0, s_f=a - 10.0) == a - 3.0  # before
     assert expert._off_crossings(b + 1.0, s_f=a + 1.0) == b + 1.0  # on it already
+
+
+def test_a_lane_change_right_after_a_junction_starts_from_the_lane_the_junction_leads_onto():
+    """Town05's route 0 changes lanes just past junction J2296: the entry lane was the
+    junction's own (internal) lane, which the car had already left, so it kept to a corridor
+    behind it and drove into a car standing on the lane it was really on (normal, seed 2)."""
+    town = resolve_town("05")
+    expert = _planned(town, route_by_index(town, 0))
+    changes = expert.plan.lane_changes
+    assert changes
+    for change in changes:
+        assert not change.entry_lane.startswith(":")
+        assert change.entry_lane.rsplit("_", 1)[0] == change.target_lane.rsplit("_", 1)[0]
+        assert change.entry_lane != change.target_lane
