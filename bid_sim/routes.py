@@ -15,6 +15,7 @@ from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
+import shapely
 import sumolib
 
 from bid_sim.errors import BidError
@@ -201,6 +202,24 @@ class RoadGraph:
                     continue
                 out.append((c.getFromLane().getIndex(), c.getToLane().getIndex(), self._vias(c), c.getDirection()))
         return sorted(out, key=lambda t: (t[0], t[1]))
+
+    @cached_property
+    def overpasses(self) -> dict[str, tuple[tuple[str, float, float], ...]]:
+        """Where two streets cross with no junction between them, one over the other (Town05's
+        bridges; our towns are flat): edge -> ((the other edge, x, y), ...)."""
+        edges = [self.net.getEdge(e) for e in sorted(self.car_edges)]
+        lines = {e.getID(): shapely.LineString([p[:2] for p in e.getShape()]) for e in edges}
+        tree = shapely.STRtree([lines[e.getID()] for e in edges])
+        out: dict[str, list[tuple[str, float, float]]] = {}
+        for i, a in enumerate(edges):
+            for j in sorted(int(k) for k in tree.query(lines[a.getID()], predicate="crosses")):
+                b = edges[j]
+                if j <= i or {a.getFromNode(), a.getToNode()} & {b.getFromNode(), b.getToNode()}:
+                    continue
+                for point in shapely.get_parts(lines[a.getID()].intersection(lines[b.getID()])):
+                    out.setdefault(a.getID(), []).append((b.getID(), point.x, point.y))
+                    out.setdefault(b.getID(), []).append((a.getID(), point.x, point.y))
+        return {e: tuple(v) for e, v in out.items()}
 
     @cached_property
     def tls_links(self) -> dict[tuple[str, str], tuple[str, int]]:

@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 EGO_ID = "ego"
 EGO_TYPE = "ego_t"
 NEARBY_M = 120.0  # actors farther than this from the ego are left out of the snapshot
+OVERPASS_M = 15.0  # near a crossing of two streets without a junction, each is on its own level
 DT_S = 0.1
 
 
@@ -202,10 +203,17 @@ class World:
 
     def _read(self, ids: list[str], domain, front_bumper: bool) -> Actors:
         ex, ey = self.ego.x_m, self.ego.y_m
+        # Near where a street passes over or under the ego's, actors on it are on the other
+        # level: left out, as the flat world would otherwise have them collide.
+        levels = [(other, x, y) for other, x, y in self.graph.overpasses.get(self.route.edges[self._route_idx], ())
+                  if math.hypot(x - ex, y - ey) < OVERPASS_M]
         keep, xy, yaw, speed, size, colour = [], [], [], [], [], []
         for aid in ids:
             x, y = domain.getPosition(aid)
             if abs(x - ex) > NEARBY_M or abs(y - ey) > NEARBY_M:
+                continue
+            if levels and any(math.hypot(x - lx, y - ly) < OVERPASS_M and domain.getRoadID(aid) == other
+                              for other, lx, ly in levels):
                 continue
             info = self.traffic.actors.get(aid)
             if info is None:

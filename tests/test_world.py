@@ -8,9 +8,12 @@ import sys
 import libsumo as traci
 import numpy as np
 import pytest
+import sumolib
 
 from bid_sim.ego import EgoState
-from bid_sim.world import EGO_ID, World
+from bid_sim.routes import RouteSpec, plan_spec, road_graph
+from bid_sim.towns import resolve_town
+from bid_sim.world import EGO_ID, OVERPASS_M, World
 
 
 def _actor_digest(town, route, density, seed, steps):
@@ -107,3 +110,26 @@ def test_a_car_stuck_without_a_red_light_is_replaced_and_flowing_traffic_is_not(
         assert w.traffic.gridlock_removals >= 1
         n_veh, _ = town02.density("normal")
         assert n_veh - 3 <= len([v for v in traci.vehicle.getIDList() if v != EGO_ID]) <= n_veh
+
+
+def test_actors_on_a_street_over_the_egos_are_left_out_near_the_crossing():
+    """Town05's S18 passes over its ring road (-S22) with no junction; the world is flat, so
+    a car there would collide with the ego under it. Near the crossing it is on another level."""
+    assert not road_graph(resolve_town("02").net_file).overpasses
+    town = resolve_town("05")
+    graph = road_graph(town.net_file)
+    _, x, y = next(o for o in graph.overpasses["-S22"] if o[0] == "S18")
+
+    def pos_on(lane_id: str) -> float:
+        return sumolib.geomhelper.polygonOffsetWithMinimumDistanceToPoint((x, y), graph.net.getLane(lane_id).getShape())
+
+    under = pos_on("-S22_1")
+    route = plan_spec(graph, RouteSpec("-S22", under - 2.0, "-S22", under + 60.0))
+    with World(town, "none", 0, route) as w:
+        assert math.hypot(w.ego.x_m - x, w.ego.y_m - y) < OVERPASS_M
+        over = pos_on("S18_1")
+        w.place_vehicle("over", "S18_1", over + 2.0)
+        w.place_vehicle("beyond", "S18_1", over - 45.0)
+        w.step_idle(2)
+        vehicles, _ = w.snapshot_actors()
+        assert "over" not in vehicles.ids and "beyond" in vehicles.ids
