@@ -12,7 +12,8 @@ results/NAME/
   config.json      what was asked (a resume must ask the same)
   episodes.jsonl   one line per finished episode: ids, metrics, infractions
   summary.json     SR, SSR, RC, IP, DS (mean and _std over seeds), counts and per-km
-                   rates, for the whole run and per density and weather
+                   rates, for the whole run and per density and weather; "outcomes": per
+                   density, how the episodes ended and what failed them first
   summary.md       the same as tables laid out like the paper's
   videos/, recordings/  with --video / --record
 """
@@ -327,8 +328,56 @@ def summarise(lines: list[dict], config: dict) -> dict:
     agg = m.aggregate(rows, group_by=("density", "weather"))
     steps = sum(ln["steps"] for ln in lines)
     cpu = sum(ln.get("cpu_s", 0.0) for ln in lines)
-    return {"config": config, **agg, "steps": steps,
+    return {"config": config, **agg, "outcomes": outcomes(lines, list(agg["by_density"])), "steps": steps,
             "eval_steps_per_s_per_core": round(steps / cpu, 1) if cpu > 0 else None}
+
+
+# How an episode ends (EpisodeResult.status; "other" holds DAgger's gave_up).
+ENDINGS = ("completed", "route_deviation", "timeout", "blocked", "other")
+# What spoils a NoCrash success first: the episode's first collision, else how it ended.
+FAILURE_CAUSES = ("vehicle", "pedestrian", "layout", "route_deviation", "timeout", "blocked", "other")
+_CONTACT_CAUSE = {m.COLLISION_VEHICLE: "vehicle", m.COLLISION_PEDESTRIAN: "pedestrian",
+                  m.COLLISION_LAYOUT: "layout"}
+
+
+def failure_cause(line: dict) -> str | None:
+    """None for a NoCrash success (SR); else its first collision's kind, or how it ended."""
+    if line["metrics"]["SR"] >= 100.0:
+        return None
+    contacts = [inf for inf in line["infractions"] if inf["kind"] in _CONTACT_CAUSE]
+    if contacts:
+        return _CONTACT_CAUSE[min(contacts, key=lambda inf: inf["time_s"])["kind"]]
+    return line["status"] if line["status"] in FAILURE_CAUSES else "other"
+
+
+def outcomes(lines: list[dict], densities: list[str]) -> dict:
+    """Per density and for all: episodes, their endings and their failures' first causes (counts)."""
+    def count(group: list[dict]) -> dict:
+        ended = dict.fromkeys(ENDINGS, 0)
+        first = dict.fromkeys(FAILURE_CAUSES, 0)
+        for ln in group:
+            ended[ln["status"] if ln["status"] in ENDINGS else "other"] += 1
+            cause = failure_cause(ln)
+            if cause is not None:
+                first[cause] += 1
+        return {"episodes": len(group), "ended": ended, "failed": sum(first.values()), "first_failure": first}
+
+    return {"by_density": {d: count([ln for ln in lines if ln["density"] == d]) for d in densities},
+            "all": count(lines)}
+
+
+def outcome_tables(out: dict) -> str:
+    """summary.md's two tables of `outcomes`."""
+    groups = {**out["by_density"], "all": out["all"]}
+    ended = ["| group | episodes | " + " | ".join(ENDINGS) + " |", "|---|---|" + "---|" * len(ENDINGS)]
+    first = ["| group | failed | " + " | ".join(FAILURE_CAUSES) + " |", "|---|---|" + "---|" * len(FAILURE_CAUSES)]
+    for name, g in groups.items():
+        ended.append(f"| {name} | {g['episodes']} | " + " | ".join(str(g["ended"][k]) for k in ENDINGS) + " |")
+        first.append(f"| {name} | {g['failed']} | " + " | ".join(str(g["first_failure"][k]) for k in FAILURE_CAUSES)
+                     + " |")
+    return ("## How the episodes ended\n\n" + "\n".join(ended) + "\n\n"
+            "## What failed them first (an episode's first collision, else how it ended)\n\n"
+            + "\n".join(first) + "\n")
 
 
 PAPER_KEYS_NOCRASH = ("SR", "SSR", "TL", "RC", "DS", "CV", "CP", "CL", "episodes")
@@ -344,6 +393,8 @@ def summary_markdown(summary: dict) -> str:
              "## By density\n", m.format_table(summary["by_density"], keys), "\n",
              "## By weather\n", m.format_table(summary["by_weather"], keys), "\n",
              "## All\n", m.format_table({"all": summary["all"]}, keys), "\n"]
+    if "outcomes" in summary:
+        parts.append(outcome_tables(summary["outcomes"]))
     return "\n".join(p for p in parts if p)
 
 
@@ -368,4 +419,4 @@ def compare(folders: list[str]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["EvalEpisode", "compare", "evaluate", "load_agent", "plan_eval"]
+__all__ = ["EvalEpisode", "compare", "evaluate", "failure_cause", "load_agent", "outcomes", "plan_eval"]

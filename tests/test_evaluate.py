@@ -6,7 +6,7 @@ import json
 import pytest
 
 from bid_sim.cli import main
-from bid_sim.evaluate import evaluate, load_agent, read_lines
+from bid_sim.evaluate import evaluate, failure_cause, load_agent, outcomes, read_lines
 
 RUN = {"town": "02", "densities": ("none",), "weathers": ("WetSunset",), "seeds": 1, "routes": [0, 3],
        "agent": "bid_sim.agents:LaneFollower", "progress": False}
@@ -34,7 +34,38 @@ def test_files_and_summary(serial):
     assert s["all"]["episodes"] == 2
     md = (out / "summary.md").read_text()
     assert "| SR | SSR | TL |" in md and "## By density" in md
+    assert "## What failed them first" in md
+    assert s["outcomes"]["all"]["episodes"] == 2 and sum(s["outcomes"]["all"]["ended"].values()) == 2
     assert summary["eval_steps_per_s_per_core"] > 0
+
+
+def _line(density, status, sr, *contacts):
+    return {"density": density, "status": status, "metrics": {"SR": sr},
+            "infractions": [{"kind": "red_light", "time_s": 1.0}]
+            + [{"kind": kind, "time_s": t} for kind, t in contacts]}
+
+
+def test_what_failed_an_episode_first():
+    assert failure_cause(_line("normal", "completed", 100.0)) is None
+    # the earliest collision, whatever order the infractions are in
+    assert failure_cause(_line("normal", "completed", 0.0, ("collision_layout", 9.0),
+                               ("collision_pedestrian", 4.0))) == "pedestrian"
+    assert failure_cause(_line("normal", "route_deviation", 0.0, ("collision_vehicle", 30.0))) == "vehicle"
+    # no collision: how it ended; a red light alone spoils no NoCrash success
+    assert failure_cause(_line("crowded", "blocked", 0.0)) == "blocked"
+    assert failure_cause(_line("crowded", "gave_up", 0.0)) == "other"
+    lines = [_line("normal", "completed", 100.0), _line("normal", "timeout", 0.0),
+             _line("crowded", "completed", 0.0, ("collision_vehicle", 2.0)), _line("crowded", "gave_up", 0.0)]
+    out = outcomes(lines, ["crowded", "normal"])
+    assert list(out["by_density"]) == ["crowded", "normal"]
+    normal = out["by_density"]["normal"]
+    assert normal["episodes"] == 2 and normal["failed"] == 1
+    assert normal["ended"]["completed"] == 1 and normal["ended"]["timeout"] == 1
+    assert normal["first_failure"]["timeout"] == 1
+    crowded = out["by_density"]["crowded"]
+    assert crowded["ended"]["other"] == 1 and crowded["first_failure"] == {
+        "vehicle": 1, "pedestrian": 0, "layout": 0, "route_deviation": 0, "timeout": 0, "blocked": 0, "other": 1}
+    assert out["all"]["failed"] == 3 and out["all"]["episodes"] == 4
 
 
 def test_parallel_and_resumed_runs_match_serial(serial, tmp_path):
