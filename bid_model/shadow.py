@@ -107,9 +107,13 @@ def window(steps: list[ShadowStep], until_s: float, seconds: float) -> list[Shad
 
 def tally(steps: list[ShadowStep], probe_speeds: tuple[float, ...] = PROBE_SPEEDS) -> dict[str, int]:
     """How the BID answered where the expert braked: steps the expert braked; of those, the
-    BID drove on; and of those, it would have braked at a higher speed input ("speed_led")."""
+    BID braked too (as hard as EXPERT_BRAKES), braked hard (−0.5 or harder), drove on; and of
+    those it drove on, it would have braked at a higher speed input ("speed_led")."""
     braked = [s for s in steps if s.expert[1] <= EXPERT_BRAKES]
     went = [s for s in braked if s.bid[1] > BID_GOES]
     led = [s for s in went if s.accel_at and any(
         a <= -BID_GOES for v, a in zip(probe_speeds, s.accel_at, strict=True) if v > s.speed_mps)]
-    return {"steps": len(steps), "expert_braked": len(braked), "bid_drove_on": len(went), "speed_led": len(led)}
+    return {"steps": len(steps), "expert_braked": len(braked),
+            "bid_braked": sum(s.bid[1] <= EXPERT_BRAKES for s in braked),
+            "bid_braked_hard": sum(s.bid[1] <= -0.5 for s in braked),
+            "bid_drove_on": len(went), "speed_led": len(led)}

@@ -69,7 +69,8 @@ def test_tally_and_window():
              _step(1.1, 5.0, 0.5, -0.5, (0.6, 0.4, 0.3)),  # drove on whatever the speed
              _step(1.2, 5.0, -0.3, -0.5, (0.6, 0.4, -0.3)),  # braked too
              _step(1.3, 5.0, 0.5, 0.2, (0.6, 0.4, -0.3))]  # the expert did not brake
-    assert tally(steps, (0.0, 4.0, 8.0)) == {"steps": 4, "expert_braked": 3, "bid_drove_on": 2, "speed_led": 1}
+    assert tally(steps, (0.0, 4.0, 8.0)) == {"steps": 4, "expert_braked": 3, "bid_braked": 1, "bid_braked_hard": 0,
+                                            "bid_drove_on": 2, "speed_led": 1}
     assert [s.time_s for s in window(steps, 1.25, 0.2)] == [1.1, 1.2]
 
 

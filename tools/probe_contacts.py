@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
         print(_show(r, args.every))
     print(f"\nover the last {args.seconds:g} s before {sum(bool(r['contact']) for r in probes)} contacts: "
           f"the expert braked (accel <= -0.2) on {total['expert_braked']} of {total['steps']} steps; "
-          f"the BID drove on (accel > 0.1) on {total['bid_drove_on']} of them, and on "
+          f"the BID braked on {total['bid_braked']} of them ({total['bid_braked_hard']} at -0.5 or harder) "
+          f"and drove on (accel > 0.1) on {total['bid_drove_on']}, and on "
           f"{total['speed_led']} of those it would have braked at a higher speed input")
     return 0
 
