@@ -94,12 +94,6 @@ def probe_episode(checkpoint: str | Path, town: str, route: int, weather: str, d
     return result, agent.steps
 
 
-def first_contact(result) -> dict | None:
-    """The episode's earliest collision (an infraction dict), or None."""
-    hits = [i for i in result.to_dict()["infractions"] if i["kind"].startswith("collision")]
-    return min(hits, key=lambda i: i["time_s"]) if hits else None
-
-
 def window(steps: list[ShadowStep], until_s: float, seconds: float) -> list[ShadowStep]:
     """The steps of the `seconds` up to and including time `until_s`."""
     return [s for s in steps if until_s - seconds <= s.time_s <= until_s]

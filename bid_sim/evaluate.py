@@ -340,13 +340,19 @@ _CONTACT_CAUSE = {m.COLLISION_VEHICLE: "vehicle", m.COLLISION_PEDESTRIAN: "pedes
                   m.COLLISION_LAYOUT: "layout"}
 
 
+def first_collision(line: dict) -> dict | None:
+    """An episode line's earliest collision (its infraction dict), or None."""
+    contacts = [inf for inf in line["infractions"] if inf["kind"] in _CONTACT_CAUSE]
+    return min(contacts, key=lambda inf: inf["time_s"]) if contacts else None
+
+
 def failure_cause(line: dict) -> str | None:
     """None for a NoCrash success (SR); else its first collision's kind, or how it ended."""
     if line["metrics"]["SR"] >= 100.0:
         return None
-    contacts = [inf for inf in line["infractions"] if inf["kind"] in _CONTACT_CAUSE]
-    if contacts:
-        return _CONTACT_CAUSE[min(contacts, key=lambda inf: inf["time_s"])["kind"]]
+    first = first_collision(line)
+    if first is not None:
+        return _CONTACT_CAUSE[first["kind"]]
     return line["status"] if line["status"] in FAILURE_CAUSES else "other"
 
 

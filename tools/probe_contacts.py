@@ -29,22 +29,18 @@ from bid_sim.errors import BidError
 def _probe(job: tuple) -> dict:
     import torch
 
-    from bid_model.shadow import first_contact, probe_episode, tally, window
+    from bid_model.shadow import probe_episode, tally, window
+    from bid_sim.evaluate import first_collision
 
     torch.set_num_threads(1)
     checkpoint, line, seconds = job
     result, steps = probe_episode(checkpoint, line["town"], line["route_index"], line["weather"],
                                   line["density"], line["seed"])
-    hit = first_contact(result)
+    hit = first_collision(result.to_dict())
     before = window(steps, hit["time_s"], seconds) if hit else []
     return {"key": line["key"], "status": result.status, "contact": hit,
-            "replayed": bool(hit) and hit["time_s"] == _first(line)["time_s"],
+            "replayed": bool(hit) and hit["time_s"] == first_collision(line)["time_s"],
             "steps": [dataclasses.asdict(s) for s in before], "tally": tally(before)}
-
-
-def _first(line: dict) -> dict | None:
-    hits = [i for i in line["infractions"] if i["kind"].startswith("collision")]
-    return min(hits, key=lambda i: i["time_s"]) if hits else None
 
 
 def _pick(lines: list[dict], cause: str, density: str | None, limit: int) -> list[dict]:
