@@ -57,7 +57,10 @@ def _show(r: dict, every: int) -> str:
             if c else f"== {r['key']}: no contact on replay ({r['status']})")
     if c and not r["replayed"]:
         head += "  [not the evaluation's contact: another checkpoint or code?]"
-    rows = [head, "   t s   v m/s | BID steer accel | expert steer accel  reason | BID accel at v = 0,2,4,6,8,10"]
+    from bid_model.shadow import PROBE_SPEEDS
+
+    speeds = ",".join(f"{v:g}" for v in PROBE_SPEEDS)
+    rows = [head, f"   t s   v m/s | BID steer accel | expert steer accel  reason | BID accel at v = {speeds}"]
     for s in r["steps"][::every]:
         at = " ".join(f"{a:+.2f}" for a in s["accel_at"])
         rows.append(f"  {s['time_s']:5.1f} {s['speed_mps']:5.1f} |   {s['bid'][0]:+.2f} {s['bid'][1]:+.2f} |"
@@ -78,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print the probes as JSON instead")
     args = p.parse_args(argv)
     try:
+        if args.max < 1 or args.every < 1 or args.workers < 1 or not args.seconds > 0:
+            raise BidError("--max, --every and --workers must be 1 or more and --seconds above 0")
         folder = Path(args.results)
         if not (folder / "episodes.jsonl").is_file() or not (folder / "config.json").is_file():
             raise BidError(f"{folder} is not a bid evaluate folder (no episodes.jsonl / config.json); "
@@ -90,6 +95,9 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint = args.checkpoint or config["checkpoint"]
         if not Path(checkpoint).is_file():
             raise BidError(f"checkpoint {checkpoint} not found; pass --checkpoint PATH")
+        from bid_model.checkpoint import load_model
+
+        load_model(checkpoint)  # a damaged or foreign checkpoint fails here, once, in one line
         if hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest() != config.get("checkpoint_sha256"):
             print(f"note: {checkpoint} is not the checkpoint {folder} was evaluated with; "
                   "episodes will not replay as they ran", file=sys.stderr)
@@ -101,8 +109,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     jobs = [(checkpoint, ln, args.seconds) for ln in picked]
-    with mp.get_context("spawn").Pool(max(1, min(args.workers, len(jobs)))) as pool:
-        probes = pool.map(_probe, jobs)
+    try:
+        with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
+            probes = pool.map(_probe, jobs)
+    except BidError as e:  # e.g. a SUMO error mid-episode, from a worker
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     total = {k: sum(r["tally"][k] for r in probes) for k in probes[0]["tally"]}
     if args.json:
         print(json.dumps({"probes": probes, "tally": total}))
