@@ -41,6 +41,13 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--frame-hw", default=None, metavar="ROWSxCOLS",
                    help="the network's input size, e.g. 96x288 (the preset's by default: small 64x192); "
                         "with --init from another size the token grids' positional embeddings are resized")
+    p.add_argument("--accel-quantile", type=float, default=None, metavar="TAU",
+                   help="fit accel's TAU-quantile (pinball loss) rather than its median: below 0.5, "
+                        "where the labels of a scene disagree the network brakes as the harder of "
+                        "them (0.5, L1, by default)")
+    p.add_argument("--speed-noise", type=float, default=None, metavar="SIGMA",
+                   help="train on the speed input times exp(SIGMA·N(0,1)), so that the network judges "
+                        "gaps from the frames rather than the speed alone (0, exact, by default)")
     p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the measured speed to the network (off in paper, on in small)")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")

@@ -111,6 +111,8 @@ class TrainConfig:
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     lambda_forecast: float = 0.0  # weight of the speed forecast's L1 loss (model.forecast_s)
+    accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)
+    speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
     seed: int = 0
     workers: int = 2
     synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`

@@ -75,9 +75,19 @@ def make_optimizer(model: nn.Module, tc: TrainConfig) -> torch.optim.AdamW:
 
 
 def l1_loss(pred: torch.Tensor, target: torch.Tensor, tc: TrainConfig) -> torch.Tensor:
-    """λ_s·|Δsteer| + λ_a·|Δaccel|, averaged over the batch."""
-    err = (pred.float() - target).abs().mean(0)
-    return tc.lambda_steer * err[0] + tc.lambda_accel * err[1]
+    """λ_s·|Δsteer| + λ_a·|Δaccel|, averaged over the batch.
+
+    With tc.accel_quantile τ ≠ 0.5 the accel term is the pinball loss 2·max(τ·r, (τ−1)·r),
+    r = label − prediction, whose minimiser is the τ-quantile of the labels rather than their
+    median (τ = 0.5 is |r|): with τ < 0.5, accelerating past a label costs more than braking
+    past it.
+    """
+    diff = target - pred.float()
+    steer = diff[:, 0].abs().mean()
+    tau = tc.accel_quantile
+    r = diff[:, 1]
+    accel = r.abs().mean() if tau == 0.5 else 2.0 * torch.maximum(tau * r, (tau - 1.0) * r).mean()
+    return tc.lambda_steer * steer + tc.lambda_accel * accel
 
 
 def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Tensor:
@@ -100,6 +110,19 @@ def batch_inputs(batch: dict[str, Any], device: torch.device
               torch.as_tensor(batch["speed_mps"], dtype=torch.float32).to(device))
     target = torch.stack([torch.as_tensor(batch["steer"]), torch.as_tensor(batch["accel"])], 1)
     return inputs, target.float().to(device, non_blocking=True)
+
+
+def noisy_speed(speed_mps: torch.Tensor, sigma: float) -> torch.Tensor:
+    """The speed input as trained with `--speed-noise`: each sample's speed times
+    exp(sigma·N(0, 1)), from torch's generator (reseeded per epoch). A standstill stays 0.
+
+    The probe of docs/experiments.md ("Why it runs into things") found the network brakes by
+    speed rather than by distance; a speed it cannot quite trust leaves the frames to judge the
+    gap by.
+    """
+    if sigma <= 0:
+        return speed_mps
+    return speed_mps * torch.exp(sigma * torch.randn(speed_mps.shape, device=speed_mps.device))
 
 
 def open_data(config: RunConfig, data: Path | None, synthetic: bool
@@ -362,6 +385,7 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
                dynamic_ncols=True, mininterval=1.0)
     for i, batch in enumerate(bar):
         inputs, target = batch_inputs(batch, device)
+        inputs = (*inputs[:3], noisy_speed(inputs[3], tc.speed_noise))
         if tc.augment > 0:
             inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
         with _autocast(device):
@@ -645,7 +669,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--lr": args.lr, "--seed": args.seed, "--samples": args.samples,
              "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
-             "--forecast": args.forecast, "--frame-hw": args.frame_hw}
+             "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
+             "--accel-quantile": args.accel_quantile}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -680,6 +705,16 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         tc = dataclasses.replace(tc, augment=args.augment)
     if args.hard_brake is not None:
         tc = dataclasses.replace(tc, hard_brake=args.hard_brake)
+    if args.accel_quantile is not None:
+        if not 0.0 < args.accel_quantile < 1.0:
+            raise BidError(f"--accel-quantile is a quantile, between 0 and 1 (0.5: L1); got {args.accel_quantile}")
+        tc = dataclasses.replace(tc, accel_quantile=args.accel_quantile)
+    if args.speed_noise is not None:
+        if not 0.0 <= args.speed_noise <= 2.0:
+            raise BidError(f"--speed-noise is the σ of a log-normal factor, 0 to 2; got {args.speed_noise}")
+        if not model.speed_input:
+            raise BidError("--speed-noise needs a speed input: drop it, or add --speed-input")
+        tc = dataclasses.replace(tc, speed_noise=args.speed_noise)
     if args.forecast is not None:
         if not args.forecast >= 0:
             raise BidError(f"--forecast is the weight of the speed forecast's loss, 0 or more; got {args.forecast}")

@@ -422,3 +422,77 @@ def test_forecast_flag_sets_head_and_weight_together(tmp_path, capsys):
     assert bid(["train", "--preset", "tiny", "--synthetic", "--forecast", "-1",
                 "--out", str(tmp_path / "x")]) == 2
     assert "--forecast is the weight" in capsys.readouterr().err
+
+
+def test_speed_noise_scales_each_speed_by_a_log_normal_factor_and_reaches_training(tmp_path, capsys):
+    """--speed-noise σ trains on speed × exp(σ·N(0,1)): standstill stays 0, the log-ratio has
+    spread σ, and a run with it ends elsewhere than one without."""
+    import argparse
+
+    from bid_model.cli import add_train_arguments
+    from bid_model.train import config_from_args, noisy_speed
+
+    speed = torch.full((20000,), 5.0)
+    speed[:100] = 0.0
+    torch.manual_seed(0)
+    noisy = noisy_speed(speed, 0.3)
+    assert torch.equal(noisy[:100], speed[:100])
+    log_ratio = (noisy[100:] / speed[100:]).log()
+    assert abs(float(log_ratio.mean())) < 0.01 and float(log_ratio.std()) == pytest.approx(0.3, rel=0.05)
+    assert noisy_speed(speed, 0.0) is speed
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    assert config_from_args(parser.parse_args(["--preset", "small"])).train.speed_noise == 0.0
+    assert config_from_args(parser.parse_args(["--preset", "small", "--speed-noise", "0.3"])).train.speed_noise == 0.3
+    for flags, says in ((["--preset", "small", "--speed-noise", "-1"], "--speed-noise is the σ"),
+                        (["--preset", "tiny", "--speed-noise", "0.3"], "--speed-noise needs a speed input")):
+        assert bid(["train", *flags, "--synthetic", "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    assert not (tmp_path / "x").exists()
+
+    base = quick_run(1)
+    exact = RunConfig(dataclasses.replace(base.model, speed_input=True), base.train)
+    noised = RunConfig(exact.model, dataclasses.replace(exact.train, speed_noise=0.5))
+    train(tmp_path / "exact", exact, synthetic=True, progress=False)
+    train(tmp_path / "noised", noised, synthetic=True, progress=False)
+    a = load_checkpoint(tmp_path / "exact" / "last.pt")["model"]["speed_token.weight"]
+    b = load_checkpoint(tmp_path / "noised" / "last.pt")["model"]["speed_token.weight"]
+    assert not torch.allclose(a, b)
+
+
+def test_accel_quantile_fits_that_quantile_of_the_labels_and_half_is_l1(tmp_path, capsys):
+    """--accel-quantile τ: a constant fitted by the loss lands on the labels' τ-quantile for
+    accel and their median for steer; τ = 0.5 is the plain L1 loss."""
+    import argparse
+
+    from bid_model.cli import add_train_arguments
+    from bid_model.train import config_from_args, l1_loss
+
+    gen = torch.Generator().manual_seed(0)
+    labels = torch.stack([torch.rand(4000, generator=gen) * 2 - 1, torch.rand(4000, generator=gen) * 2 - 1], 1)
+    l1 = tiny().train
+    pred = torch.zeros(4000, 2) + 0.1
+    assert float(l1_loss(pred, labels, l1)) == pytest.approx(
+        float(0.5 * (labels - pred).abs().mean(0).sum()), rel=1e-6)
+    tc = dataclasses.replace(l1, accel_quantile=0.2)
+    const = torch.zeros(2, requires_grad=True)
+    opt = torch.optim.SGD([const], lr=0.02)
+    for _ in range(600):
+        opt.zero_grad()
+        l1_loss(const.expand(4000, 2), labels, tc).backward()
+        opt.step()
+    const = const.detach()
+    assert float(const[1]) == pytest.approx(float(labels[:, 1].quantile(0.2)), abs=0.03)
+    assert float(const[0]) == pytest.approx(float(labels[:, 0].median()), abs=0.03)
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    assert config_from_args(parser.parse_args(["--preset", "tiny"])).train.accel_quantile == 0.5
+    assert config_from_args(parser.parse_args(["--preset", "tiny", "--accel-quantile", "0.3"])).train.accel_quantile == 0.3
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--accel-quantile", "1",
+                "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--accel-quantile is a quantile" in err and "\n" not in err
+    assert not (tmp_path / "x").exists()
