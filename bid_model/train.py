@@ -12,8 +12,9 @@ reads it in every process: keep it on a shared filesystem). The global batch sta
 preset's, each process trains on whole episodes of its own, and a job of N processes ends
 where one process with shards=N does (see train).
 
-L1 loss on (steer, accel) weighted λ_s = λ_a = 0.5, plus with `--forecast W` W times the L1
-error of the speed forecast (BID.forward_forecast); AdamW with weight decay on weights only;
+L1 loss on (steer, accel) weighted λ_s = λ_a = 0.5 (accel's with `--accel-quantile` a pinball
+loss, see l1_loss), plus with `--forecast W` W times the L1 error of the speed forecast
+(BID.forward_forecast); AdamW with weight decay on weights only;
 the lr halves at the (scaled) milestones. A run folder holds config.json (resolved config,
 git hash, software versions), dataset.json, metrics.csv, last.pt and best.pt (atomic, with
 optimiser and scheduler state for --resume) and the plots mae.png and steering.png.
