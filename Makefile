@@ -96,10 +96,13 @@ dagger: $(STAMP)
 # training, six DAgger rounds (as the shipped checkpoint had, the last three augmented), the
 # weight average of the fifth and sixth, a seventh round from it with hard frames repeated,
 # a round on routes with corners (seed 9, as data/town01/dagger9, not 8: `make ablations`
-# records its own round 8) that also trains the speed forecast (what is shipped),
-# the Town02 NoCrash for the expert and the new BID, and the result tables. The shipped
-# checkpoint is left alone: copy runs/reproduce_corners/last.pt over it with `bid export`
-# only if it drives better.
+# records its own round 8) that also trains the speed forecast, then fresh recordings into
+# data/town01_late (demonstrations, a DAgger round and a corner round, all driven or
+# labelled by the corner round's BID) on which it is fine-tuned one epoch with accel's
+# 0.3-quantile as the target, and the equal-weight average of the corner round and that
+# (runs/reproduce_soup: what is shipped), the Town02 NoCrash for the expert and the new
+# BID, and the result tables. The shipped checkpoint is left alone: copy
+# runs/reproduce_soup/last.pt over it with `bid export` only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
@@ -116,11 +119,22 @@ reproduce: $(STAMP)
 		AUGMENT=0.8 HARD_REPEAT=3 EPISODES=96
 	$(MAKE) dagger STUDENT=runs/reproduce_dagger7/last.pt ROUND=9 DAGGER_RUN=reproduce_corners DAGGER_EPOCHS=1 \
 		AUGMENT=0.8 HARD_REPEAT=3 EPISODES=48 BENDS=1 FORECAST=0.5
+	$(BID) record --town 01 --episodes 48 --perturb $(PERTURB) --seed 30 --workers $(WORKERS) \
+		--out data/town01_late/expert30
+	$(BID) record --town 01 --episodes 96 --seed 31 --dagger runs/reproduce_corners/last.pt \
+		--workers $(WORKERS) --out data/town01_late/dagger31
+	$(BID) record --town 01 --episodes 48 --seed 32 --bends --dagger runs/reproduce_corners/last.pt \
+		--workers $(WORKERS) --out data/town01_late/bends32
+	$(BID) train --preset small --data data/town01_late --name reproduce_q30 \
+		$(if $(wildcard runs/reproduce_q30/last.pt),--resume,--init runs/reproduce_corners/last.pt --epochs 1 \
+		--lr 1e-4 --augment 0.8 --hard-repeat 3 --forecast 0.5 --accel-quantile 0.3)
+	$(if $(wildcard runs/reproduce_soup/last.pt),,$(BID) average runs/reproduce_corners/last.pt \
+		runs/reproduce_q30/last.pt --out runs/reproduce_soup/last.pt)
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_corners/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
-	$(BID) lesion --checkpoint runs/reproduce_corners/last.pt --town 02 --density normal \
+		--checkpoint runs/reproduce_soup/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+	$(BID) lesion --checkpoint runs/reproduce_soup/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md
 
