@@ -29,6 +29,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="share of training samples given a random lighting change (bid_model/augment.py)")
     p.add_argument("--hard-repeat", type=int, default=None, metavar="N",
                    help="train on each frame of hard steering or braking N times (recordings.balance_rows)")
+    p.add_argument("--hold-repeat", type=int, default=None, metavar="N",
+                   help="keep every frame where the expert stands or brakes below 2 m/s with no red "
+                        "light ahead (a yield: to pedestrians on the crossing, a car) and train on it "
+                        "N times (recordings.yield_frames; 1 by default)")
     p.add_argument("--hard-brake", action=argparse.BooleanOptionalAction, default=None,
                    help="with --hard-repeat, whether hard braking frames are repeated too (default yes)")
     p.add_argument("--brake-lookahead", type=int, default=None, metavar="N",

@@ -107,6 +107,7 @@ class TrainConfig:
     start_repeat: int = 1  # times each moving-off frame is trained on
     hard_repeat: int = 1  # times each frame of hard steering or braking while moving is trained on
     hard_brake: bool = True  # whether hard braking counts as hard (else only steering)
+    hold_repeat: int = 1  # times each frame of yielding (no red light) is trained on (recordings.yield_frames)
     brake_lookahead: int = 1  # frames over which training labels brake ahead (recordings.anticipate_braking)
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)

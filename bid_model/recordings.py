@@ -30,6 +30,7 @@ from torch.utils.data import Dataset
 from bid_model.data import resize_frame, split_episodes
 from bid_sim.errors import BidError
 from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
+from bid_sim.snapshot import RED, YELLOW
 
 log = logging.getLogger(__name__)
 CACHE_DIR = ".bid_cache"
@@ -49,6 +50,8 @@ class _Index:
     steer: np.ndarray
     accel: np.ndarray
     jpeg: list[bytes] | None  # kept only without the cache
+    # (N,) bool: a red or amber light on the route within LIGHT_STOP_M (None: not known, none)
+    light_stop: np.ndarray | None = None
 
 
 def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
@@ -62,7 +65,8 @@ def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
 
 
 def _index(files: list[Path], keep_jpeg: bool) -> _Index:
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("episode", "step", "prev", "command", "speed", "steer", "accel")}
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("episode", "step", "prev", "command", "speed", "steer", "accel",
+                                                         "light_stop")}
     facts, jpeg = [], [] if keep_jpeg else None
     n = 0
     for e, f in enumerate(files):
@@ -80,13 +84,21 @@ def _index(files: list[Path], keep_jpeg: bool) -> _Index:
         cols["speed"].append(ep.speed_mps)
         cols["steer"].append(ep.steer)
         cols["accel"].append(ep.accel)
+        cols["light_stop"].append(np.array([light_stops(st) for st in ep.states], dtype=bool))
         if jpeg is not None:
             jpeg.extend(ep.jpeg)
         n += m
     arr = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()}
     return _Index(files, facts, arr["episode"].astype(np.int64), arr["step"].astype(np.int64),
                   arr["prev"].astype(np.int64), arr["command"].astype(np.int64), arr["speed"].astype(np.float32),
-                  arr["steer"].astype(np.float32), arr["accel"].astype(np.float32), jpeg)
+                  arr["steer"].astype(np.float32), arr["accel"].astype(np.float32), jpeg,
+                  arr["light_stop"].astype(bool))
+
+
+def light_stops(state: dict) -> bool:
+    """Whether a recorded /ego/state has a red or amber light on the route within LIGHT_STOP_M."""
+    dist = state.get("next_light_dist_m")
+    return state.get("next_light_state") in (RED, YELLOW) and dist is not None and dist < LIGHT_STOP_M
 
 
 def _cache_key(files: list[Path], frame_hw: tuple[int, int]) -> str:
@@ -206,10 +218,14 @@ STANDING_STEER_MAX = 0.5  # standing frames that steer harder say nothing (see b
 HARD_STEER = 0.25  # |steer| from which a moving frame is a hard one (a turn, a sharp bend)
 HARD_BRAKE = -0.2  # accel up to which a moving frame is a hard one (slowing for a bend, a car)
 STOP_BRAKE = -0.5  # accel up to which the expert is stopping (anticipate_braking), not slowing
+# A red light this close ahead explains a stop (a queue of a few cars before its line); a stop
+# without one is a yield: to a pedestrian on the crossing, a car ahead, cross traffic.
+LIGHT_STOP_M = 40.0
 
 
 def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float, start_repeat: int, hard_repeat: int = 1,
-                 hard_brake: bool = True, accel: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 hard_brake: bool = True, accel: np.ndarray | None = None, hold_repeat: int = 1
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Training rows rebalanced against the stop/go imbalance of driving data, and which of
     them to show as standing still.
 
@@ -235,11 +251,19 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float, start_repeat
     front of Town02's corners (DAgger round 8). `accel`: the labels trained on, where they are
     not the recorded ones (anticipate_braking); then the frames of a stop (braking by
     STOP_BRAKE or more, or braking earlier than recorded) are hard ones even without
-    `hard_brake`. Returns (rows, still), sorted.
+    `hard_brake`.
+
+    All of this favours going at low speed: moving off is repeated, standing is thinned. Yet
+    where no red light explains it, standing or slow braking is a yield, mostly to
+    pedestrians on the crossing of a turn, and the town sees it seldom (of data/new's 161k
+    frames, 2.3k stand and 0.4k move slowly so, against 22k moving off). The BID of
+    2026-11-25 moved off into them at +0.6 while the expert held −1 (docs/experiments.md).
+    Those frames (yield_frames) are all kept and trained on `hold_repeat` times. Returns
+    (rows, still), sorted.
     """
-    if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1:
-        raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat >= 1, got {stop_keep}, "
-                       f"{start_repeat}, {hard_repeat}")
+    if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1 or hold_repeat < 1:
+        raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat, hold_repeat >= 1, got "
+                       f"{stop_keep}, {start_repeat}, {hard_repeat}, {hold_repeat}")
     rows = np.asarray(rows, dtype=np.int64)
     standing = (index.speed < STOPPED_MPS) & (index.accel <= 0.0)
     starting = (index.speed < START_MPS) & (index.accel > 0.0)
@@ -250,13 +274,16 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float, start_repeat
         same = np.r_[index.episode[k:] == index.episode[:-k], np.zeros(k, dtype=bool)]
         soon |= ahead & same
     every = max(1, round(1.0 / stop_keep))
-    keep = ~standing[rows] | soon[rows] | (index.step[rows] % every == 0)
+    yielding = yield_frames(index, accel) if hold_repeat > 1 else np.zeros(len(index.step), dtype=bool)
+    keep = ~standing[rows] | soon[rows] | yielding[rows] | (index.step[rows] % every == 0)
     keep &= ~((index.speed[rows] < STOPPED_MPS) & (np.abs(index.steer[rows]) > STANDING_STEER_MAX))
     kept = rows[keep]
     repeats = np.repeat(kept[starting[kept]], start_repeat - 1)
     hard_repeats = np.repeat(kept[hard_frames(index, hard_brake, accel)[kept]], hard_repeat - 1)
-    all_rows = np.r_[kept, hard_repeats, repeats]
-    still = np.r_[np.zeros(len(kept) + len(hard_repeats), dtype=bool), np.ones(len(repeats), dtype=bool)]
+    hold_repeats = np.repeat(kept[yielding[kept]], hold_repeat - 1)
+    all_rows = np.r_[kept, hard_repeats, hold_repeats, repeats]
+    still = np.r_[np.zeros(len(kept) + len(hard_repeats) + len(hold_repeats), dtype=bool),
+                  np.ones(len(repeats), dtype=bool)]
     order = np.lexsort((still, all_rows))
     return all_rows[order], still[order]
 
@@ -271,6 +298,16 @@ def hard_frames(index: _Index, brake: bool = True, accel: np.ndarray | None = No
     if accel is not None:
         hard |= (labels <= STOP_BRAKE) | (labels < index.accel)
     return (index.speed >= START_MPS) & hard
+
+
+def yield_frames(index: _Index, accel: np.ndarray | None = None) -> np.ndarray:
+    """Which frames stand or move off slowly (below START_MPS) braking by HARD_BRAKE or more
+    (`accel`: the labels trained on) with no red or amber light within LIGHT_STOP_M: the
+    expert yielding (see balance_rows). Recordings without light states have none."""
+    labels = index.accel if accel is None else accel
+    if index.light_stop is None:
+        return np.zeros(len(labels), dtype=bool)
+    return (index.speed < START_MPS) & (labels <= HARD_BRAKE) & ~index.light_stop
 
 
 def anticipate_braking(index: _Index, frames: int) -> np.ndarray:
@@ -342,11 +379,12 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
-                    brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = ()
+                    brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1
                     ) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
-    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake)` and a share
+    The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake,
+    hold_repeat)` and a share
     `motion_drop` of them shown without motion (`motion_dropout`); their accel labels brake
     `brake_lookahead` frames ahead (`anticipate_braking`). The validation set keeps every
     frame and label as recorded, so its errors stay those of real driving. With
@@ -371,7 +409,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     is_val = np.isin(index.episode, val_eps)
     train_rows = np.flatnonzero(~is_val)
     accel = anticipate_braking(index, brake_lookahead) if brake_lookahead != 1 else None
-    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel)
+    balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel,
+                                   hold_repeat)
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed), accel, forecast)
@@ -387,6 +426,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "forecast_steps": list(forecast_steps),
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
+        "hold_repeat": hold_repeat, "train_yield_frames": int(yield_frames(index, accel)[balanced].sum()),
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,
         "train_shown_motionless": int(train.motionless.sum()),
         "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),

@@ -150,7 +150,7 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat,
                                                       hard_brake=tc.hard_brake,
                                                       brake_lookahead=tc.brake_lookahead,
-                                                      forecast_steps=ahead)
+                                                      forecast_steps=ahead, hold_repeat=tc.hold_repeat)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -671,7 +671,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
-             "--accel-quantile": args.accel_quantile}
+             "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -691,6 +691,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
                                    ("--samples", args.samples, "synthetic_samples", 4),
                                    ("--seed", args.seed, "seed", 0),
                                    ("--hard-repeat", args.hard_repeat, "hard_repeat", 1),
+                                   ("--hold-repeat", args.hold_repeat, "hold_repeat", 1),
                                    ("--brake-lookahead", args.brake_lookahead, "brake_lookahead", 1)):
         if value is not None:
             if value < ok:

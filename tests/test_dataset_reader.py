@@ -98,6 +98,36 @@ def test_balance_thins_standing_keeps_the_lead_up_to_a_start_and_repeats_starts(
         balance_rows(ix, np.arange(90), 0.0, 1)
 
 
+def test_yields_are_kept_and_repeated_but_not_stops_at_a_red_light():
+    import numpy as np
+
+    from bid_model.recordings import balance_rows, light_stops, yield_frames
+
+    # Episode 0: 20 frames standing at a red light, then moving off. Episode 1: moving off,
+    # braking at 1 m/s and standing 20 frames for a pedestrian (no light), then moving off.
+    speed = [0.0] * 20 + [1.0] * 5 + [8.0] * 5 + [1.0] * 5 + [1.0] * 3 + [0.0] * 20 + [1.0] * 2
+    accel = [-1.0] * 20 + [0.5] * 5 + [0.0] * 5 + [0.5] * 5 + [-0.6] * 3 + [-1.0] * 20 + [0.5] * 2
+    ix = _fake_index(speed, accel, [0] * 30 + [1] * 30)
+    rows0, _ = balance_rows(ix, np.arange(60), 0.25, 3)
+    ix.light_stop = np.array([True] * 20 + [False] * 40)
+    assert list(np.flatnonzero(yield_frames(ix))) == list(range(35, 58))
+    assert list(balance_rows(ix, np.arange(60), 0.25, 3)[0]) == list(rows0)  # off: unchanged
+    rows, still = balance_rows(ix, np.arange(60), 0.25, 3, hold_repeat=4)
+    counts = np.bincount(rows, minlength=60)
+    assert (counts[35:58] == 4).all()  # every yield frame, standing ones too: none thinned out
+    assert list(counts[:20]) == list(np.bincount(rows0, minlength=60)[:20])  # the red light: as before
+    assert not still[np.isin(rows, np.arange(35, 58))].any()  # shown as recorded
+    with pytest.raises(BidError, match="hold_repeat"):
+        balance_rows(ix, np.arange(60), 0.25, 3, hold_repeat=0)
+    ix.light_stop = None  # recordings without light states: nothing counts as a yield
+    assert not yield_frames(ix).any()
+    assert light_stops({"next_light_state": 0, "next_light_dist_m": 12.0})  # red, near
+    assert light_stops({"next_light_state": 1, "next_light_dist_m": 39.0})  # amber, near
+    assert not light_stops({"next_light_state": 0, "next_light_dist_m": 80.0})  # red, far
+    assert not light_stops({"next_light_state": 2, "next_light_dist_m": 5.0})  # green
+    assert not light_stops({"next_light_state": 0, "next_light_dist_m": None})  # none on the route
+
+
 def test_balance_drops_standing_frames_at_full_lock():
     import numpy as np
 
@@ -141,6 +171,22 @@ def test_repeated_starts_are_shown_standing_still(recorded):
     s, moving = train[i], train[i - 1]  # the same frame, first as recorded
     assert train.rows[i] == train.rows[i - 1] and s["speed_mps"] == 0.0 < moving["speed_mps"]
     assert torch.equal(s["prev_frame"], s["frame"]) and s["accel"] == moving["accel"] > 0
+
+
+def test_reader_reads_the_light_ahead_and_counts_the_yields_it_repeats(recorded):
+    import numpy as np
+
+    from bid_model.recordings import light_stops, yield_frames
+    from bid_sim.recording import read_episode
+
+    train, _, desc = open_recordings(recorded, (48, 144), 0.5, 0, hold_repeat=3)
+    ix = train.index
+    first = read_episode(ix.files[0], frames=False)
+    assert list(ix.light_stop[ix.episode == 0]) == [light_stops(s) for s in first.states]
+    assert desc["hold_repeat"] == 3
+    assert desc["train_yield_frames"] == int(yield_frames(ix)[train.rows].sum())
+    plain = open_recordings(recorded, (48, 144), 0.5, 0)[0]
+    assert len(train) - len(plain) >= 2 * len(np.unique(train.rows[yield_frames(ix)[train.rows]]))
 
 
 def test_motion_dropout_hides_motion_but_keeps_speed(recorded):

@@ -496,3 +496,19 @@ def test_accel_quantile_fits_that_quantile_of_the_labels_and_half_is_l1(tmp_path
     err = capsys.readouterr().err.strip()
     assert "--accel-quantile is a quantile" in err and "\n" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_hold_repeat_reaches_the_config_and_a_bad_one_is_one_line(tmp_path, capsys):
+    import argparse
+
+    from bid_model.cli import add_train_arguments
+    from bid_model.train import config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    assert config_from_args(parser.parse_args(["--preset", "tiny"])).train.hold_repeat == 1
+    assert config_from_args(parser.parse_args(["--preset", "tiny", "--hold-repeat", "6"])).train.hold_repeat == 6
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--hold-repeat", "0", "--out", str(tmp_path / "y")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--hold-repeat must be at least 1" in err and "\n" not in err
+    assert not (tmp_path / "y").exists()
