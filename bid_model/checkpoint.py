@@ -90,6 +90,13 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
     return card
 
 
+# Auxiliary heads (training signals driving never reads): model config field → (its value
+# without the head, the head's weight prefix, its loss weight in the train config).
+# Checkpoints that differ only in them average into one without the heads they do not all have.
+AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
+             "hazard": (False, "hazard_head.", "lambda_hazard")}
+
+
 def average_checkpoints(paths: list[str | Path], out: str | Path,
                         weights: list[float] | None = None) -> dict[str, Any]:
     """Writes to `out` the weighted average of the weights of checkpoints of one network
@@ -104,17 +111,30 @@ def average_checkpoints(paths: list[str | Path], out: str | Path,
     weights = [w / sum(weights) for w in weights]
     ckpts = [load_checkpoint(p) for p in paths]
     first = ckpts[0]
+    model_cfg = dict(first["config"].get("model", {}))
+    train_cfg = dict(first["config"].get("train", {}))
+    heads = tuple(prefix for _, prefix, _ in AUX_HEADS.values())
+    trunk = {k for k in first["model"] if not k.startswith(heads)}
     for p, c in zip(paths[1:], ckpts[1:], strict=True):
-        if c["config"].get("model") != first["config"].get("model") or c["model"].keys() != first["model"].keys():
+        theirs = c["config"].get("model", {})
+        diff = {k for k in model_cfg.keys() | theirs.keys() if model_cfg.get(k) != theirs.get(k)}
+        if diff - AUX_HEADS.keys() or {k for k in c["model"] if not k.startswith(heads)} != trunk:
             raise BidError(f"{p} is another network than {paths[0]} (model config or weights differ); "
                            "average only fine-tunings of one model")
+        for k in diff:  # an auxiliary head not all of them have: the average goes without it
+            model_cfg[k] = AUX_HEADS[k][0]
+            train_cfg[AUX_HEADS[k][2]] = 0.0
+    dropped = tuple(prefix for f, (_, prefix, _) in AUX_HEADS.items() if not model_cfg.get(f))
+    keys = [k for k in first["model"] if not (dropped and k.startswith(dropped))]
     state = {}
-    for key, t0 in first["model"].items():
+    for key in keys:
+        t0 = first["model"][key]
         if t0.is_floating_point():
             state[key] = sum(w * c["model"][key].double() for w, c in zip(weights, ckpts, strict=True)).to(t0.dtype)
         else:
             state[key] = t0.clone()
     payload = {k: first[k] for k in SHIPPED_KEYS if k in first}
+    payload["config"] = {**first["config"], "model": model_cfg, "train": train_cfg}
     payload.update(model=state, history=[], best_val_loss=math.inf, git_hash=git_hash(),
                    init={"average": [{"path": str(p), "weight": w, "epoch": c.get("epoch"), "git_hash": c.get("git_hash")}
                                      for p, w, c in zip(paths, weights, ckpts, strict=True)]})

@@ -42,6 +42,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="also train a head forecasting the speed 1, 2 and 3 s ahead, its L1 loss "
                         "weighted WEIGHT (speed in units of 10 m/s; 0, none, by default); driving "
                         "ignores it (bid_model/model.py)")
+    p.add_argument("--hazard", type=float, default=None, metavar="WEIGHT",
+                   help="also train a head saying how far ahead the nearest pedestrian and vehicle in the "
+                        "ego's path are, learnt from the recordings' /scene, its L1 loss weighted WEIGHT "
+                        "(0, none, by default); driving ignores it (bid_model/hazards.py)")
     p.add_argument("--frame-hw", default=None, metavar="ROWSxCOLS",
                    help="the network's input size, e.g. 96x288 (the preset's by default: small 64x192); "
                         "with --init from another size the token grids' positional embeddings are resized")

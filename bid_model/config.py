@@ -26,7 +26,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
-INIT_FIELDS = VARIANT_FIELDS | {"forecast_s"}
+INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -70,6 +70,9 @@ class ModelConfig:
     # Seconds ahead of the auxiliary speed forecast (BID.forward(forecast=True)); () = none.
     # A training signal only: driving uses (steer, accel) alone. Not in the paper.
     forecast_s: tuple[float, ...] = ()
+    # An auxiliary head for what stands in the path: the distance to the nearest pedestrian
+    # and vehicle in it (bid_model.hazards; BID.forward(hazard=True)). A training signal only.
+    hazard: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -112,6 +115,7 @@ class TrainConfig:
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     lambda_forecast: float = 0.0  # weight of the speed forecast's L1 loss (model.forecast_s)
+    lambda_hazard: float = 0.0  # weight of the hazard head's L1 loss (model.hazard)
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)
     speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
     seed: int = 0

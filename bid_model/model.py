@@ -7,7 +7,10 @@
 With `config.forecast_s` a small head beside CPC also forecasts the speed those seconds
 ahead from MPC's tokens: an auxiliary training target (`forward(..., forecast=True)`) that
 asks the decision network to see a slowdown coming (a corner, a red light, a queue) before
-the expert's braking starts; driving never reads it.
+the expert's braking starts; driving never reads it. With `config.hazard` another says how
+far ahead the nearest pedestrian and vehicle in the ego's path are (bid_model.hazards), also
+from MPC's tokens (`forward(..., hazard=True)`): it asks the network to tell a pedestrian in
+its path from one beside it. Driving never reads it either.
 
 `BID.forward_features` returns every area's output by name; `forward_head` is CPC. Any area
 can be lesioned at inference (`set_lesions`, `lesioned`): its output is replaced by zeros or
@@ -102,6 +105,11 @@ class BID(nn.Module):
         self.forecast_head = (nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
                                             nn.Linear(c.cpc_hidden[1], len(c.forecast_s)))
                               if c.forecast_s else None)
+        # Auxiliary hazard head: (pedestrian, vehicle) nearness in the path, 1 − distance /
+        # HAZARD_AHEAD_M (0: none within it); not an area (no lesions).
+        self.hazard_head = (nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
+                                          nn.Linear(c.cpc_hidden[1], 2))
+                            if c.hazard else None)
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
@@ -222,21 +230,29 @@ class BID(nn.Module):
             raise BidError("this model has no speed forecast; train it with --forecast")
         return self.forecast_head(features["MPC"].mean(dim=1)) * SPEED_SCALE_MPS
 
+    def forward_hazard(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
+        """(batch, 2): nearness of the nearest (pedestrian, vehicle) in the path, from MPC's tokens."""
+        if self.hazard_head is None:
+            raise BidError("this model has no hazard head; train it with --hazard")
+        return self.hazard_head(features["MPC"].mean(dim=1))
+
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,
-                forecast: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+                forecast: bool = False, hazard: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
         """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6);
-        with `forecast`, ((steer, accel), forecast speeds (B, len(forecast_s)) in m/s)."""
+        with `forecast` and/or `hazard`, ((steer, accel), then the forecast speeds (B,
+        len(forecast_s)) in m/s, then the hazard nearness (B, 2), those asked for, in that order)."""
         feats = self.forward_features(frame_t, frame_prev, command_onehot, speed_mps)
         control = self.forward_head(feats)
-        return (control, self.forward_forecast(feats)) if forecast else control
+        extra = ([self.forward_forecast(feats)] if forecast else []) + ([self.forward_hazard(feats)] if hazard else [])
+        return (control, *extra) if extra else control
 
     def parameter_counts(self) -> dict[str, int]:
         """Number of parameters of each area (and of the optional extra pathways)."""
         counts = {name: sum(p.numel() for p in area.parameters())
                   for name, area in self.areas.items()}
         for name, module in (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
-                             ("forecast", self.forecast_head)):
+                             ("forecast", self.forecast_head), ("hazard", self.hazard_head)):
             if module is not None:
                 counts[name] = sum(p.numel() for p in module.parameters())
         return counts

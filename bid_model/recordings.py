@@ -28,6 +28,7 @@ import torch
 from torch.utils.data import Dataset
 
 from bid_model.data import resize_frame, split_episodes
+from bid_model.hazards import HAZARD_AHEAD_M, index_hazards
 from bid_sim.errors import BidError
 from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
 from bid_sim.snapshot import RED, YELLOW
@@ -163,10 +164,14 @@ class RecordingDataset(Dataset):
 
     def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None,
                  still: np.ndarray | None = None, motionless: np.ndarray | None = None,
-                 accel: np.ndarray | None = None, forecast: np.ndarray | None = None):
+                 accel: np.ndarray | None = None, forecast: np.ndarray | None = None,
+                 hazard: np.ndarray | None = None):
         self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
         # (N, K) speeds ahead per index row, the targets of the speed forecast (future_speeds).
         self.forecast = forecast
+        # (N, 2) nearness of the nearest pedestrian and vehicle in the path per index row, the
+        # targets of the hazard head (hazard_nearness).
+        self.hazard = hazard
         # Accel labels per index row, where they are not the recorded ones (anticipate_braking).
         self.accel_labels = None if accel is None else np.asarray(accel, dtype=np.float32)
         # Rows shown standing still: frame t−1 = frame t and speed 0 (see balance_rows).
@@ -203,6 +208,8 @@ class RecordingDataset(Dataset):
                   "accel": float(accel[j]), "episode": int(ix.episode[j]), "step": int(ix.step[j])}
         if self.forecast is not None:
             sample["future_speed"] = torch.from_numpy(self.forecast[j])
+        if self.hazard is not None:
+            sample["hazard"] = torch.from_numpy(self.hazard[j])
         return sample
 
     def __getstate__(self) -> dict:
@@ -361,6 +368,12 @@ def future_speeds(index: _Index, steps: tuple[int, ...]) -> np.ndarray:
     return np.stack([index.speed[np.minimum(rows + k, last)] for k in steps], axis=1).astype(np.float32)
 
 
+def hazard_nearness(distances_m: np.ndarray) -> np.ndarray:
+    """The hazard head's targets from bid_model.hazards' distances: 1 − distance /
+    HAZARD_AHEAD_M, so 1 is touching the ego's front and 0 nothing in the path within reach."""
+    return (1.0 - np.clip(distances_m, 0.0, HAZARD_AHEAD_M) / HAZARD_AHEAD_M).astype(np.float32)
+
+
 def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
     """Which of n training rows to show without motion (frame t−1 = frame t): a fixed random
     `share` of them, drawn from `seed`.
@@ -379,8 +392,8 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
-                    brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1
-                    ) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1,
+                    hazard: bool = False) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
     The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake,
@@ -389,7 +402,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     `brake_lookahead` frames ahead (`anticipate_braking`). The validation set keeps every
     frame and label as recorded, so its errors stay those of real driving. With
     `forecast_steps` the samples of both also hold "future_speed", the speeds that many steps
-    ahead (`future_speeds`).
+    ahead (`future_speeds`); with `hazard`, "hazard", what stands in the path
+    (`hazard_nearness` of bid_model.hazards.index_hazards, cached beside the frames).
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -412,9 +426,13 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel,
                                    hold_repeat)
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
+    near = None
+    if hazard:
+        near = hazard_nearness(index_hazards(index.files, index.episode, index.step,
+                                             folder / CACHE_DIR if cache else None))
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
-                             motion_dropout(len(balanced), motion_drop, seed), accel, forecast)
-    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast)
+                             motion_dropout(len(balanced), motion_drop, seed), accel, forecast, near)
+    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
     towns = Counter(f.get("town", "?") for f in index.facts)
@@ -424,6 +442,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "train_frames_before_balance": len(train_rows), "stop_keep": stop_keep, "start_repeat": start_repeat,
         "hard_repeat": hard_repeat, "hard_brake": hard_brake, "brake_lookahead": brake_lookahead,
         "forecast_steps": list(forecast_steps),
+        "hazard_frames": None if near is None else {"pedestrian_in_path": int((near[:, 0] > 0).sum()),
+                                                    "vehicle_in_path": int((near[:, 1] > 0).sum())},
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
         "hold_repeat": hold_repeat, "train_yield_frames": int(yield_frames(index, accel)[balanced].sum()),

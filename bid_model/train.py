@@ -14,7 +14,8 @@ where one process with shards=N does (see train).
 
 L1 loss on (steer, accel) weighted λ_s = λ_a = 0.5 (accel's with `--accel-quantile` a pinball
 loss, see l1_loss), plus with `--forecast W` W times the L1 error of the speed forecast
-(BID.forward_forecast); AdamW with weight decay on weights only;
+(BID.forward_forecast) and with `--hazard W` W times the L1 error of the hazard head
+(BID.forward_hazard, bid_model.hazards); AdamW with weight decay on weights only;
 the lr halves at the (scaled) milestones. A run folder holds config.json (resolved config,
 git hash, software versions), dataset.json, metrics.csv, last.pt and best.pt (atomic, with
 optimiser and scheduler state for --resume) and the plots mae.png and steering.png.
@@ -48,6 +49,7 @@ from bid_model.augment import photometric
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
 from bid_model.config import FORECAST_S, INIT_FIELDS, RESIZE_FIELDS, RunConfig, TrainConfig, preset, with_variant
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
+from bid_model.hazards import HAZARD_AHEAD_M
 from bid_model.model import BID, SPEED_SCALE_MPS, resize_grid_tokens
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
@@ -58,7 +60,7 @@ log = logging.getLogger(__name__)
 DEFAULT_DATA = Path("data/town01")
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
-                  "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "lr", "samples_per_s",
+                  "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "val_mae_hazard_m", "lr", "samples_per_s",
                   "time_s")
 
 
@@ -97,6 +99,23 @@ def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Ten
     return ((pred_mps.float() - target_mps) / SPEED_SCALE_MPS).abs().mean()
 
 
+def hazard_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
+    batch and both kinds."""
+    return (pred.float() - target).abs().mean()
+
+
+def _split_outputs(out: torch.Tensor | tuple[torch.Tensor, ...], tc: TrainConfig
+                   ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """(control, forecast or None, hazard or None) of BID.forward(forecast=..., hazard=...)."""
+    if isinstance(out, torch.Tensor):
+        return out, None, None
+    rest = list(out[1:])
+    ahead = rest.pop(0) if tc.lambda_forecast > 0 else None
+    hazard = rest.pop(0) if tc.lambda_hazard > 0 else None
+    return out[0], ahead, hazard
+
+
 def forecast_steps(config: RunConfig) -> tuple[int, ...]:
     """The model's forecast horizons in simulation steps."""
     return tuple(round(t / DT_S) for t in config.model.forecast_s)
@@ -131,6 +150,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
     """(train, validation, description): generated data, or the recordings in `data`."""
     tc, hw, ahead = config.train, config.model.frame_hw, forecast_steps(config)
     if synthetic:
+        if tc.lambda_hazard > 0:
+            raise BidError("--hazard learns from recordings (their /scene); drop it, or train on --data")
         return synthetic_split(tc.synthetic_samples, hw, tc.val_fraction, tc.seed, ahead)
     folder = Path(data if data is not None else DEFAULT_DATA)
     hint = "record some with `make record TOWN=01`, or train on generated data with --synthetic"
@@ -150,7 +171,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       motion_drop=tc.motion_drop, hard_repeat=tc.hard_repeat,
                                                       hard_brake=tc.hard_brake,
                                                       brake_lookahead=tc.brake_lookahead,
-                                                      forecast_steps=ahead, hold_repeat=tc.hold_repeat)
+                                                      forecast_steps=ahead, hold_repeat=tc.hold_repeat,
+                                                      hazard=tc.lambda_hazard > 0)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -390,13 +412,13 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
         if tc.augment > 0:
             inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
         with _autocast(device):
-            if tc.lambda_forecast > 0:
-                pred, ahead = net(*inputs, forecast=True)
-            else:
-                pred = net(*inputs)
+            pred, ahead, hazard = _split_outputs(
+                net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0), tc)
         loss = l1_loss(pred, target, tc)
-        if tc.lambda_forecast > 0:
+        if ahead is not None:
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
+        if hazard is not None:
+            loss = loss + tc.lambda_hazard * hazard_loss(hazard, batch["hazard"].to(device))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -414,15 +436,16 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
              ) -> dict[str, Any]:
     """Loss and MAE on `loader`, the best constant's MAE, and every prediction (for plots)."""
     model.eval()
-    preds, targets, episodes, steps, forecast_err = [], [], [], [], []
+    preds, targets, episodes, steps, forecast_err, hazard_err = [], [], [], [], [], []
     for batch in loader:
         inputs, target = batch_inputs(batch, device)
         with _autocast(device):
-            if tc.lambda_forecast > 0:
-                pred, ahead = model(*inputs, forecast=True)
+            pred, ahead, hazard = _split_outputs(
+                model(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0), tc)
+            if ahead is not None:
                 forecast_err.append((ahead.float().cpu() - batch["future_speed"]).abs())
-            else:
-                pred = model(*inputs)
+            if hazard is not None:
+                hazard_err.append((hazard.float().cpu() - batch["hazard"]).abs() * HAZARD_AHEAD_M)
             preds.append(pred.float().cpu())
         targets.append(target.cpu())
         episodes.append(torch.as_tensor(batch["episode"]))
@@ -434,9 +457,11 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
     # The forecast's MAE in m/s, per horizon, beside the driving metrics (not in val_loss,
     # which stays comparable between runs with and without it).
     forecast = torch.cat(forecast_err).mean(0).tolist() if forecast_err else []
+    # Likewise the hazard head's MAE in metres, (pedestrian, vehicle).
+    hazard_m = torch.cat(hazard_err).mean(0).tolist() if hazard_err else []
     return {"val_loss": float(tc.lambda_steer * mae[0] + tc.lambda_accel * mae[1]),
             "val_mae_steer": float(mae[0]), "val_mae_accel": float(mae[1]),
-            "val_mae_forecast_mps": forecast,
+            "val_mae_forecast_mps": forecast, "val_mae_hazard_m": hazard_m,
             "const_mae_steer": float(const[0]), "const_mae_accel": float(const[1]),
             "pred": pred.numpy(), "target": target.numpy(),
             "episode": torch.cat(episodes).numpy(), "step": torch.cat(steps).numpy()}
@@ -517,6 +542,9 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     if (config.train.lambda_forecast > 0) != bool(config.model.forecast_s):
         raise BidError("a speed forecast needs both its head (model.forecast_s) and its loss weight "
                        "(train.lambda_forecast); set both with --forecast WEIGHT")
+    if (config.train.lambda_hazard > 0) != config.model.hazard:
+        raise BidError("a hazard head needs both the head (model.hazard) and its loss weight "
+                       "(train.lambda_hazard); set both with --hazard WEIGHT")
     start_from, diff, fresh = None, [], []
     if init is not None:
         if resume:
@@ -537,6 +565,9 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     if tc.lambda_forecast > 0 and tuple(getattr(first.get("future_speed"), "shape", ())) != (len(config.model.forecast_s),):
         raise BidError(f"--forecast needs dataset items with 'future_speed', {len(config.model.forecast_s)} speeds "
                        "ahead (see the contract in bid_model/data.py)")
+    if tc.lambda_hazard > 0 and tuple(getattr(first.get("hazard"), "shape", ())) != (2,):
+        raise BidError("--hazard needs dataset items with 'hazard', the nearness of a pedestrian and a vehicle "
+                       "in the path (bid_model.recordings.hazard_nearness)")
 
     shards = dist.world if shards is None else shards
     torch.manual_seed(tc.seed)
@@ -628,6 +659,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         # cell) without one.
         per_horizon = val["val_mae_forecast_mps"] if val else []
         row["val_mae_forecast_mps"] = float(np.mean(per_horizon)) if per_horizon else None
+        per_kind = val["val_mae_hazard_m"] if val else []
+        row["val_mae_hazard_m"] = float(np.mean(per_kind)) if per_kind else None
         row.update(lr=lr, samples_per_s=samples / train_s, time_s=time.perf_counter() - t0)
         history.append(row)
         score = row["val_loss"] if val else row["train_loss"]
@@ -649,6 +682,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if val and val["val_mae_forecast_mps"]:
             log.info("speed forecast MAE at %s s: %s m/s", "/".join(f"{t:g}" for t in config.model.forecast_s),
                      "/".join(f"{e:.2f}" for e in val["val_mae_forecast_mps"]))
+        if val and val["val_mae_hazard_m"]:
+            log.info("hazard distance MAE, pedestrian/vehicle: %s m", "/".join(f"{e:.2f}" for e in val["val_mae_hazard_m"]))
         if dist.world > 1:
             torch.distributed.barrier()
     return history
@@ -671,7 +706,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--speed-input": args.speed_input, "--augment": args.augment, "--hard-repeat": args.hard_repeat,
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
-             "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat}
+             "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
+             "--hazard": args.hazard}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -722,6 +758,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
             raise BidError(f"--forecast is the weight of the speed forecast's loss, 0 or more; got {args.forecast}")
         model = dataclasses.replace(model, forecast_s=FORECAST_S if args.forecast > 0 else ())
         tc = dataclasses.replace(tc, lambda_forecast=args.forecast)
+    if args.hazard is not None:
+        if not args.hazard >= 0:
+            raise BidError(f"--hazard is the weight of the hazard head's loss, 0 or more; got {args.hazard}")
+        model = dataclasses.replace(model, hazard=args.hazard > 0)
+        tc = dataclasses.replace(tc, lambda_hazard=args.hazard)
     return RunConfig(model, tc)
 
 

@@ -512,3 +512,64 @@ def test_hold_repeat_reaches_the_config_and_a_bad_one_is_one_line(tmp_path, caps
     err = capsys.readouterr().err.strip()
     assert "--hold-repeat must be at least 1" in err and "\n" not in err
     assert not (tmp_path / "y").exists()
+
+
+def test_hazard_head_trains_on_recordings_and_driving_ignores_it(recorded, tmp_path, capsys):
+    """--hazard adds a head for what stands in the path, learnt from the recordings' /scene:
+    started from a run without it, only the head is fresh; its loss reaches the shared
+    network; the metrics report its error in metres; (steer, accel) stay what they were; it
+    averages with a run without the head into one without it."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--out", str(tmp_path / "plain")]) == 0
+    start = ["--init", str(tmp_path / "plain" / "last.pt")]
+    assert bid([*base, *start, "--hazard", "1", "--out", str(tmp_path / "hz")]) == 0
+    assert bid([*base, *start, "--out", str(tmp_path / "again")]) == 0
+    capsys.readouterr()
+    tuned = load_checkpoint(tmp_path / "hz" / "last.pt")
+    assert tuned["config"]["model"]["hazard"] and tuned["config"]["train"]["lambda_hazard"] == 1.0
+    assert {k for k in tuned["init"]["fresh"] if not k.startswith("mean_")} == {
+        k for k in tuned["model"] if k.startswith("hazard_head.")}
+    other = load_checkpoint(tmp_path / "again" / "last.pt")["model"]
+    assert not torch.allclose(other["areas.V1.conv1.0.weight"], tuned["model"]["areas.V1.conv1.0.weight"])
+    rows = list(csv.DictReader((tmp_path / "hz" / "metrics.csv").open()))
+    assert 0 <= float(rows[-1]["val_mae_hazard_m"]) <= 25.0
+    assert json.loads((tmp_path / "hz" / "dataset.json").read_text())["hazard_frames"] is not None
+    model, _ = load_model(tmp_path / "hz" / "last.pt", preset="tiny")
+    x = torch.zeros(1, 3, 32, 96, dtype=torch.uint8)
+    with torch.no_grad():
+        control = model(x, x, torch.eye(6)[[3]])
+        both, near = model(x, x, torch.eye(6)[[3]], hazard=True)
+    assert torch.equal(control, both) and near.shape == (1, 2)
+    with pytest.raises(BidError, match="no hazard head"):
+        load_model(tmp_path / "plain" / "last.pt", preset="tiny")[0](x, x, torch.eye(6)[[3]], hazard=True)
+    # Averaged with the run without it: the head is left out, the rest is the mean.
+    assert bid(["average", str(tmp_path / "hz" / "last.pt"), str(tmp_path / "again" / "last.pt"),
+                "--out", str(tmp_path / "avg.pt")]) == 0
+    avg = load_checkpoint(tmp_path / "avg.pt")
+    assert not avg["config"]["model"]["hazard"] and avg["config"]["train"]["lambda_hazard"] == 0.0
+    assert not any(k.startswith("hazard_head.") for k in avg["model"])
+    key = "areas.V1.conv1.0.weight"
+    assert torch.allclose(avg["model"][key], (tuned["model"][key] + other[key]) / 2)
+    load_model(tmp_path / "avg.pt", preset="tiny")  # a network like any other
+
+
+def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
+    import argparse
+
+    from bid_model.cli import add_train_arguments
+    from bid_model.train import config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_train_arguments(parser)
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5"]))
+    assert run.model.hazard and run.train.lambda_hazard == 0.5
+    for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
+                        (["--synthetic", "--hazard", "-1"], "--hazard is the weight")):
+        assert bid(["train", "--preset", "tiny", *flags, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err
+    assert not (tmp_path / "x" / "last.pt").exists()
+    half = tiny()
+    half = RunConfig(dataclasses.replace(half.model, hazard=True), half.train)
+    with pytest.raises(BidError, match="--hazard WEIGHT"):
+        train(tmp_path / "half", half, synthetic=True, progress=False)

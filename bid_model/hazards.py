@@ -1,0 +1,155 @@
+"""What stands in the ego's path: the targets of the auxiliary hazard head (`bid train --hazard`).
+
+The shipped BID could not tell a pedestrian in its path from one beside it (docs/experiments.md,
+"The shipped BID probed"): it drove into crossings the expert held at. The recordings know the
+answer: `/scene` holds every actor's box, and the ego's own poses later in the episode hold the
+path it drove. For each frame, the path is the next HAZARD_AHEAD_M metres of that trajectory
+(straight on along the last heading past the episode's end), a corridor the ego's half width
+plus CORRIDOR_MARGIN_M either side of it; an actor whose footprint enters the corridor is in the
+path, at the arc length where it first does, from the ego's front bumper. A frame's targets are
+the distances to the nearest pedestrian and the nearest vehicle in the path, capped at
+HAZARD_AHEAD_M (nothing in the path within it).
+
+Footprints are three discs along an actor's length (one for a pedestrian, whose box is square):
+a stadium as wide as the box, close enough for a 4.6 m car beside a 3.5 m lane.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import multiprocessing as mp
+import os
+from pathlib import Path
+
+import numpy as np
+
+from bid_sim.errors import BidError
+from bid_sim.recording import read_snapshots
+from bid_sim.snapshot import Actors, Snapshot
+
+log = logging.getLogger(__name__)
+
+HAZARD_AHEAD_M = 25.0  # how far along the path to look: about 2 s at Town01's 11 m/s, and a stop
+CORRIDOR_MARGIN_M = 0.4  # beyond the ego's half width: a pedestrian on the kerb is not in the path
+PATH_STEP_M = 0.5  # spacing of the path's sample points
+KINDS = ("pedestrian", "vehicle")  # the columns of the targets
+_VERSION = "hazard-v1"  # part of the cache key: bump when the definition changes
+
+
+def _path_points(xy: np.ndarray, s: np.ndarray, s0: float) -> np.ndarray:
+    """(Q, 2) points of the trajectory (xy at arc lengths s, strictly increasing) from s0 on."""
+    q = s0 + np.arange(0.0, HAZARD_AHEAD_M + PATH_STEP_M / 2, PATH_STEP_M)
+    return np.stack([np.interp(q, s, xy[:, 0]), np.interp(q, s, xy[:, 1])], axis=1)
+
+
+def _discs(actors: Actors) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centres (3A, 2), radii (3A,), actor of each disc (3A,)): three discs along each box."""
+    n = len(actors)
+    length, width = actors.size[:, 0], actors.size[:, 1]
+    half_gap = np.maximum(length / 2 - width / 2, 0.0)
+    heading = np.stack([np.cos(actors.yaw_rad), np.sin(actors.yaw_rad)], axis=1)
+    offsets = np.array([-1.0, 0.0, 1.0])
+    centres = actors.xy[:, None, :] + offsets[None, :, None] * (half_gap[:, None, None] * heading[:, None, :])
+    return (centres.reshape(-1, 2), np.repeat(width / 2, 3), np.repeat(np.arange(n), 3))
+
+
+def _nearest_in_path(actors: Actors, path: np.ndarray, half_width: float, front_m: float) -> float:
+    """Distance from the ego's front along `path` to the first actor in its corridor (HAZARD_AHEAD_M: none)."""
+    if len(actors) == 0:
+        return HAZARD_AHEAD_M
+    near = np.linalg.norm(actors.xy - path[0], axis=1) < HAZARD_AHEAD_M + 10.0
+    if not near.any():
+        return HAZARD_AHEAD_M
+    sub = Actors(tuple(i for i, k in zip(actors.ids, near, strict=True) if k), actors.xy[near],
+                 actors.yaw_rad[near], actors.speed_mps[near], actors.size[near], actors.colour[near])
+    centres, radii, _ = _discs(sub)
+    gap = np.linalg.norm(centres[:, None, :] - path[None, :, :], axis=2) - radii[:, None]  # (3A, Q)
+    inside = (gap < half_width).any(axis=0)  # (Q,) path points with an actor in the corridor
+    if not inside.any():
+        return HAZARD_AHEAD_M
+    s = float(np.argmax(inside)) * PATH_STEP_M
+    return float(np.clip(s - front_m, 0.0, HAZARD_AHEAD_M))
+
+
+def path_hazards(snaps: list[Snapshot]) -> np.ndarray:
+    """(T, 2) float32: per snapshot (one episode, in step order) the distance in metres from
+    the ego's front to the nearest pedestrian and vehicle in its path (HAZARD_AHEAD_M: none)."""
+    out = np.full((len(snaps), len(KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
+    if not snaps:
+        return out
+    xy = np.array([(s.ego.x_m, s.ego.y_m) for s in snaps], dtype=np.float64)
+    s_all = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
+    # Straight on past the end, along the last heading.
+    last = snaps[-1].ego
+    tail = xy[-1] + 2 * HAZARD_AHEAD_M * np.array([np.cos(last.yaw_rad), np.sin(last.yaw_rad)])
+    xy_ext, s_ext = np.vstack([xy, tail]), np.r_[s_all, s_all[-1] + 2 * HAZARD_AHEAD_M]
+    # np.interp needs strictly increasing arc lengths: a standing ego repeats its pose.
+    keep = np.r_[True, np.diff(s_ext) > 1e-6]
+    xy_ext, s_ext = xy_ext[keep], s_ext[keep]
+    for t, snap in enumerate(snaps):
+        path = _path_points(xy_ext, s_ext, s_all[t])
+        path[0] = xy[t]  # the ego itself, not the first pose after a standstill's jitter
+        half_width = snap.ego.width_m / 2 + CORRIDOR_MARGIN_M
+        front = snap.ego.length_m / 2
+        out[t] = (_nearest_in_path(snap.pedestrians, path, half_width, front),
+                  _nearest_in_path(snap.vehicles, path, half_width, front))
+    return out
+
+
+def file_hazards(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(steps (T,), path_hazards (T, 2)) of one recording."""
+    snaps = [snap for snap, _control in read_snapshots(path)]
+    return np.array([s.step for s in snaps], dtype=np.int64), path_hazards(snaps)
+
+
+def _file_job(path: str) -> tuple[np.ndarray, np.ndarray]:
+    return file_hazards(path)
+
+
+def _key(files: list[Path]) -> str:
+    h = hashlib.sha1(_VERSION.encode())
+    for f in files:
+        st = f.stat()
+        h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()[:16]
+
+
+def index_hazards(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: Path | None,
+                  workers: int | None = None) -> np.ndarray:
+    """(N, 2) float32 path_hazards of every index row (recording `episode[i]`, `step[i]`),
+    read from `cache_dir` when it holds them for these files, else computed (one worker
+    process per recording) and stored there. A row without a /scene record is HAZARD_AHEAD_M."""
+    path = cache_dir / f"hazards-{_key(files)}.npy" if cache_dir is not None else None
+    if path is not None and path.exists():
+        cached = np.load(path)
+        if cached.shape == (len(step), len(KINDS)):
+            return cached
+    out = np.full((len(step), len(KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
+    wanted = sorted(set(np.unique(episode).tolist()))
+    jobs = [str(files[e]) for e in wanted]
+    workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))
+    log.info("finding what stands in the path in %d recordings with %d workers", len(jobs), workers)
+    if workers > 1 and len(jobs) > 1:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            results = pool.map(_file_job, jobs)
+    else:
+        results = [_file_job(j) for j in jobs]
+    for e, (steps, hazards) in zip(wanted, results, strict=True):
+        rows = np.flatnonzero(episode == e)
+        at = np.searchsorted(steps, step[rows])
+        found = (at < len(steps)) & (steps[np.minimum(at, len(steps) - 1)] == step[rows])
+        out[rows[found]] = hazards[at[found]]
+    if path is not None:
+        try:
+            cache_dir.mkdir(exist_ok=True)
+            tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npy")
+            np.save(tmp, out)
+            for old in cache_dir.glob("hazards-*.npy"):
+                if old != path and not old.name.endswith(".tmp.npy"):
+                    old.unlink()
+            os.replace(tmp, path)
+        except OSError as e:
+            raise BidError(f"cannot write the hazard cache in {cache_dir} ({e.strerror}); free disk space "
+                           "or train with --no-cache") from e
+    return out

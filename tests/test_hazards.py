@@ -1,0 +1,117 @@
+"""What stands in the ego's path (bid_model.hazards): the hazard head's targets, on made-up
+scenes with known answers and on real recordings."""
+
+import math
+
+import numpy as np
+import pytest
+
+from bid_model.hazards import HAZARD_AHEAD_M, file_hazards, index_hazards, path_hazards
+from bid_model.recordings import CACHE_DIR, find_recordings, hazard_nearness, open_recordings
+from bid_sim.recording import read_episode
+from bid_sim.snapshot import Actors, EgoView, Snapshot
+
+FRONT_M = 2.3  # half the ego's 4.6 m
+
+
+def actors(*rows: tuple[float, float, float, float, float]) -> Actors:
+    """(x, y, yaw, length, width) rows."""
+    if not rows:
+        return Actors.empty()
+    return Actors(tuple(f"a{i}" for i in range(len(rows))), np.array([r[:2] for r in rows]),
+                  np.array([r[2] for r in rows]), np.zeros(len(rows)),
+                  np.array([(r[3], r[4], 1.7) for r in rows]), np.zeros(len(rows), dtype=int))
+
+
+def snap(step: int, x: float, y: float, yaw: float, peds: Actors | None = None, cars: Actors | None = None) -> Snapshot:
+    ego = EgoView(x, y, yaw, 5.0, 4.6, 1.9, 1.5, "e_0", 0.0, 0.0, 0.0, 100.0, 4)
+    return Snapshot(step * 0.1, step, ego, cars or Actors.empty(), peds or Actors.empty(), np.zeros(0, np.uint8))
+
+
+def straight(n: int, step_m: float = 0.5, **scene) -> list[Snapshot]:
+    """An ego driving east along y = 0, `step_m` a step; the first snapshot holds `scene`."""
+    return [snap(i, i * step_m, 0.0, 0.0, **(scene if i == 0 else {})) for i in range(n)]
+
+
+def test_a_pedestrian_in_the_path_is_seen_at_its_distance_and_one_beside_it_is_not():
+    ped = 0.5
+    ahead = path_hazards(straight(80, peds=actors((12.0, 0.0, 0.0, ped, ped))))[0]
+    # The corridor is 0.95 + 0.4 m either side of the path, the pedestrian's disc 0.25 m wide:
+    # it enters 1.6 m before its centre, counted from the front bumper, in 0.5 m path steps.
+    assert ahead[0] == pytest.approx(12.0 - 1.6 - FRONT_M, abs=0.5)
+    assert ahead[1] == HAZARD_AHEAD_M  # no vehicle
+    beside = path_hazards(straight(80, peds=actors((12.0, 2.2, 0.0, ped, ped))))[0]
+    assert beside[0] == HAZARD_AHEAD_M
+    far = path_hazards(straight(80, peds=actors((HAZARD_AHEAD_M + 8.0, 0.0, 0.0, ped, ped))))[0]
+    assert far[0] == HAZARD_AHEAD_M
+
+
+def test_the_path_is_the_one_driven_a_turn_not_straight_ahead():
+    # A left turn of radius 10 m about (0, 10) after 2 m straight.
+    poses = [(x, 0.0, 0.0) for x in np.arange(-2.0, 0.0, 0.5)]
+    poses += [(10 * math.sin(a), 10 - 10 * math.cos(a), a) for a in np.arange(0.0, math.pi / 2, 0.05)]
+    poses += [(10.0, 10.0 + k * 0.5, math.pi / 2) for k in range(1, 60)]
+    on_turn = (10 * math.sin(0.9), 10 - 10 * math.cos(0.9))  # about 9 m along the arc
+    straight_on = (11.0, 0.0)  # where the ego would be had it not turned
+    scene = {"peds": actors((*on_turn, 0.0, 0.5, 0.5), (*straight_on, 0.0, 0.5, 0.5))}
+    snaps = [snap(i, x, y, a, **(scene if i == 0 else {})) for i, (x, y, a) in enumerate(poses)]
+    d = path_hazards(snaps)[0, 0]
+    assert d == pytest.approx(2.0 + 9.0 - 1.6 - FRONT_M, abs=0.6)
+    snaps_straight = [snap(i, x, y, a, peds=actors((*straight_on, 0.0, 0.5, 0.5)) if i == 0 else None)
+                      for i, (x, y, a) in enumerate(poses)]
+    assert path_hazards(snaps_straight)[0, 0] == HAZARD_AHEAD_M
+
+
+def test_a_car_ahead_in_the_lane_counts_one_in_the_next_lane_does_not():
+    ahead = actors((15.0, 0.0, 0.0, 4.6, 1.9))
+    next_lane = actors((6.0, 3.5, 0.0, 4.6, 1.9))
+    d = path_hazards(straight(80, cars=ahead))[0]
+    # Its rear disc (1.35 m behind the centre, 0.95 m wide) enters the 1.35 m corridor 2.3 m before it.
+    assert d[1] == pytest.approx(15.0 - 1.35 - 2.3 - FRONT_M, abs=0.5) and d[0] == HAZARD_AHEAD_M
+    assert path_hazards(straight(80, cars=next_lane))[0, 1] == HAZARD_AHEAD_M
+    # A car parked across the lane (yaw 90°) is in it.
+    across = path_hazards(straight(80, cars=actors((10.0, 0.0, math.pi / 2, 4.6, 1.9))))[0, 1]
+    assert across < 10.0 - FRONT_M
+
+
+def test_a_standing_ego_looks_along_where_it_goes_next_and_past_the_end_straight_on():
+    # 30 steps standing, then driving east: the pedestrian ahead is in the path all along.
+    poses = [0.0] * 30 + [0.5 * k for k in range(1, 40)]
+    peds = actors((8.0, 0.0, 0.0, 0.5, 0.5))
+    snaps = [snap(i, x, 0.0, 0.0, peds=peds) for i, x in enumerate(poses)]
+    d = path_hazards(snaps)[:, 0]
+    assert np.all(d[:30] == d[0]) and d[0] == pytest.approx(8.0 - 1.6 - FRONT_M, abs=0.5)
+    # The last snapshots: the path goes on straight along the last heading.
+    last = [snap(0, 0.0, 0.0, math.pi / 2, peds=actors((0.0, 10.0, 0.0, 0.5, 0.5)))]
+    assert path_hazards(last)[0, 0] == pytest.approx(10.0 - 1.6 - FRONT_M, abs=0.5)
+    assert path_hazards([]).shape == (0, 2)
+
+
+def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
+    files, _ = find_recordings(recorded)
+    steps, dist = file_hazards(files[0])
+    ep = read_episode(files[0], frames=False)
+    assert steps.tolist() == ep.steps.tolist() and dist.shape == (len(steps), 2)
+    assert np.all((dist >= 0) & (dist <= HAZARD_AHEAD_M))
+    train, val, desc = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True)
+    cached = list((recorded / CACHE_DIR).glob("hazards-*.npy"))
+    assert len(cached) == 1
+    dist_all = index_hazards(files, train.index.episode, train.index.step, None, workers=1)
+    assert np.array_equal(np.load(cached[0]), dist_all)
+    want = hazard_nearness(dist_all)
+    for data in (train, val):
+        for i in (0, len(data) - 1):
+            sample = data[i]
+            assert sample["hazard"].shape == (2,)
+            assert sample["hazard"].tolist() == pytest.approx(want[data.rows[i]].tolist())
+    assert desc["hazard_frames"] == {"pedestrian_in_path": int((want[:, 0] > 0).sum()),
+                                     "vehicle_in_path": int((want[:, 1] > 0).sum())}
+    # Read back from the cache, the same.
+    again = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True)[0]
+    assert np.array_equal(again.hazard, train.hazard)
+    assert "hazard" not in open_recordings(recorded, (48, 144), 0.5, 0)[0][0]
+
+
+def test_nearness_is_one_at_the_bumper_and_zero_out_of_reach():
+    assert hazard_nearness(np.array([[0.0, HAZARD_AHEAD_M], [HAZARD_AHEAD_M / 2, 99.0]])).tolist() == [
+        [1.0, 0.0], [0.5, 0.0]]
