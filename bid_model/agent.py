@@ -16,9 +16,28 @@ import torch
 
 from bid_model.checkpoint import load_model
 from bid_model.data import command_one_hot, prepare_frame
+from bid_model.hazards import HAZARD_AHEAD_M
 from bid_sim.agents import EpisodeInfo, Observation
 from bid_sim.ego import Control, EgoParams
 from bid_sim.errors import BidError
+
+SEEN_NEARNESS = 0.2  # hazard nearness from which a pedestrian counts as seen: within 20 of 25 m
+STOP_SHORT_M = 2.0  # how far short of a seen pedestrian the ego brakes to stop
+HOLD_M = 8.0  # a pedestrian seen this close keeps a slow (< START_MPS) ego standing
+START_MPS = 2.0
+
+
+def pedestrian_brake(nearness: float, speed_mps: float) -> float:
+    """Braking, as a share of full braking (0..1), to stop STOP_SHORT_M short of a pedestrian
+    the hazard head sees in the path at `nearness` (bid_model.recordings.hazard_nearness):
+    0 when it sees none; full while slow with one within HOLD_M, where the expert holds."""
+    if nearness < SEEN_NEARNESS:
+        return 0.0
+    dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+    if speed_mps < START_MPS and dist_m < HOLD_M:
+        return 1.0
+    gap = max(dist_m - STOP_SHORT_M, 0.5)
+    return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
 
 
 class BIDAgent:
@@ -30,12 +49,15 @@ class BIDAgent:
     to reach the speed the network forecasts 1 s ahead, times this gain (0: drive on the
     control head alone). The control head and the forecast are two readings of the same
     network, as the control and trajectory branches of TCP (Wu et al. 2022) are.
+    hazard_brake: for a model trained with `--hazard`, brake at least this gain times as hard
+    as `pedestrian_brake` asks for the pedestrian its hazard head sees in the path (0: not).
     """
 
     uses_camera = True
 
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
-                 threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0):
+                 threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
+                 hazard_brake: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -44,6 +66,12 @@ class BIDAgent:
             raise BidError(f"{checkpoint} has no speed forecast to brake by; train it with --forecast "
                            "or drop forecast_brake")
         self.forecast_brake = forecast_brake
+        if not hazard_brake >= 0:
+            raise BidError(f"hazard_brake is a gain, 0 or more; got {hazard_brake}")
+        if hazard_brake > 0 and not self.config.model.hazard:
+            raise BidError(f"{checkpoint} has no hazard head to brake by; train it with --hazard "
+                           "or drop hazard_brake")
+        self.hazard_brake = hazard_brake
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
@@ -65,14 +93,23 @@ class BIDAgent:
         speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
-        if self.forecast_brake <= 0:
+        by_forecast, by_hazard = self.forecast_brake > 0, self.hazard_brake > 0
+        if not (by_forecast or by_hazard):
             out = self.model(frame, prev, cmd, speed)[0]
             return Control(steer=float(out[0]), accel=float(out[1]))
-        control, ahead = self.model(frame, prev, cmd, speed, forecast=True)
-        # The deceleration to the forecast speed of the first horizon, as a share of full braking.
-        horizon_s = self.config.model.forecast_s[0]
-        need = (float(obs.speed_mps) - float(ahead[0, 0])) / horizon_s / EgoParams.max_brake_mps2
-        accel = min(float(control[0, 1]), -self.forecast_brake * need) if need > 0 else float(control[0, 1])
+        control, *extra = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard)
+        accel, v = float(control[0, 1]), float(obs.speed_mps)
+        if by_forecast:
+            ahead = extra.pop(0)
+            # The deceleration to the forecast speed of the first horizon, as a share of full braking.
+            horizon_s = self.config.model.forecast_s[0]
+            need = (v - float(ahead[0, 0])) / horizon_s / EgoParams.max_brake_mps2
+            if need > 0:
+                accel = min(accel, -self.forecast_brake * need)
+        if by_hazard:
+            need = pedestrian_brake(float(extra.pop(0)[0, 0]), v)
+            if need > 0:
+                accel = min(accel, -self.hazard_brake * need)
         return Control(steer=float(control[0, 0]), accel=max(accel, -1.0))
 
     def overlay(self, frame: np.ndarray) -> np.ndarray | None:

@@ -132,9 +132,11 @@ def _evaluate(args: argparse.Namespace) -> int:
     densities = tuple(d.strip() for d in args.density.split(",") if d.strip())
     routes = [int(r) for r in args.routes.split(",")] if args.routes else None
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
-    if args.forecast_brake is not None and args.agent != "bid":
-        raise BidError(f"--forecast-brake is an option of --agent bid, not of {args.agent!r}; drop it")
-    options = {"forecast_brake": args.forecast_brake} if args.forecast_brake else None
+    for flag, value in (("--forecast-brake", args.forecast_brake), ("--hazard-brake", args.hazard_brake)):
+        if value is not None and args.agent != "bid":
+            raise BidError(f"{flag} is an option of --agent bid, not of {args.agent!r}; drop it")
+    options = {k: v for k, v in (("forecast_brake", args.forecast_brake), ("hazard_brake", args.hazard_brake))
+               if v} or None
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
                        video=args.video, progress=not args.json, max_steps=args.max_steps,
@@ -271,6 +273,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--forecast-brake", type=float, default=None, metavar="GAIN",
                     help="--agent bid with a model trained with --forecast: brake at least GAIN times as "
                          "hard as reaching its forecast speed 1 s ahead takes (bid_model/agent.py)")
+    ev.add_argument("--hazard-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                         "hard as stopping short of the pedestrian its hazard head sees in the path takes, "
+                         "and stay standing while one is within 8 m (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

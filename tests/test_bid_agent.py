@@ -149,3 +149,51 @@ def test_forecast_brake_brakes_to_the_forecast_speed(checkpoint, tmp_path, capsy
         BIDAgent(checkpoint, forecast_brake=1.0)
     assert main(["evaluate", "--agent", "expert", "--forecast-brake", "1", "--out", str(tmp_path / "x")]) == 2
     assert "option of --agent bid" in capsys.readouterr().err
+
+
+def test_pedestrian_brake_stops_short_of_a_seen_pedestrian_and_holds_near_one():
+    from bid_model.agent import pedestrian_brake
+
+    assert pedestrian_brake(0.1, 10.0) == 0.0  # seen nowhere within 20 m
+    # 12.5 m ahead at 10 m/s: stop 2 m short, 100 / (2 · 10.5) m/s² of 8.
+    assert pedestrian_brake(0.5, 10.0) == pytest.approx(100 / 21 / 8)
+    assert pedestrian_brake(0.5, 1.0) == pytest.approx(1 / 21 / 8)  # slow and 12.5 m off: barely
+    assert pedestrian_brake(0.8, 1.0) == 1.0  # 5 m off and slow: stay standing
+    assert pedestrian_brake(0.8, 0.0) == 1.0
+    assert pedestrian_brake(1.0, 12.0) == 1.0  # at the bumper: all it has
+
+
+def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, recorded, tmp_path, capsys):
+    """With --hazard-brake the agent brakes at least as pedestrian_brake asks for what its
+    hazard head says; without it, or with nothing seen, it drives on the control head."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from bid_model.agent import pedestrian_brake
+    from bid_model.config import RunConfig
+    from bid_sim.agents import Observation
+
+    cfg = tiny()
+    run = RunConfig(dataclasses.replace(cfg.model, hazard=True),
+                    dataclasses.replace(cfg.train.with_epochs(1), lambda_hazard=1.0))
+    train(tmp_path / "hz", run, data=recorded, progress=False)
+    plain = BIDAgent(tmp_path / "hz" / "last.pt")
+    braking = BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0)
+    frame = np.random.default_rng(0).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    obs = Observation(frame, frame, 4, 6.0, None)
+    free = plain.act(obs).accel
+    last = braking.model.hazard_head[-1]
+    for nearness in (0.0, 0.6, 0.9):
+        with torch.no_grad():  # the head says a pedestrian at this nearness, whatever it sees
+            last.weight.zero_()
+            last.bias.copy_(torch.tensor([nearness, 0.9]))
+        braking.reset(None)
+        want = -pedestrian_brake(nearness, 6.0)
+        assert braking.act(obs).accel == pytest.approx(min(free, want) if want < 0 else free, abs=1e-5)
+    with pytest.raises(BidError, match="no hazard head"):
+        BIDAgent(checkpoint, hazard_brake=1.0)
+    assert main(["evaluate", "--agent", "expert", "--hazard-brake", "1", "--out", str(tmp_path / "x")]) == 2
+    assert "--hazard-brake is an option of --agent bid" in capsys.readouterr().err
+
