@@ -98,11 +98,14 @@ AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
 
 
 def average_checkpoints(paths: list[str | Path], out: str | Path,
-                        weights: list[float] | None = None) -> dict[str, Any]:
+                        weights: list[float] | None = None, keep_heads: bool = False) -> dict[str, Any]:
     """Writes to `out` the weighted average of the weights of checkpoints of one network
     (weight-space ensembling, as WiSE-FT and model soups: fine-tunings of the same start
     average into one model that keeps what each learnt). Integer buffers (batch counts) come
-    from the first. Returns the checkpoint written; its `init` names the sources and weights."""
+    from the first. An auxiliary head (AUX_HEADS) not all of them have is left out, or with
+    `keep_heads` averaged over those that have it (their weights renormalised), so that a
+    head driving reads (`--hazard-brake`) survives averaging with a run without it.
+    Returns the checkpoint written; its `init` names the sources and weights."""
     if len(paths) < 2:
         raise BidError("give two or more checkpoints to average")
     weights = [1.0] * len(paths) if weights is None else [float(w) for w in weights]
@@ -121,18 +124,37 @@ def average_checkpoints(paths: list[str | Path], out: str | Path,
         if diff - AUX_HEADS.keys() or {k for k in c["model"] if not k.startswith(heads)} != trunk:
             raise BidError(f"{p} is another network than {paths[0]} (model config or weights differ); "
                            "average only fine-tunings of one model")
-        for k in diff:  # an auxiliary head not all of them have: the average goes without it
-            model_cfg[k] = AUX_HEADS[k][0]
-            train_cfg[AUX_HEADS[k][2]] = 0.0
-    dropped = tuple(prefix for f, (_, prefix, _) in AUX_HEADS.items() if not model_cfg.get(f))
-    keys = [k for k in first["model"] if not (dropped and k.startswith(dropped))]
-    state = {}
-    for key in keys:
-        t0 = first["model"][key]
-        if t0.is_floating_point():
-            state[key] = sum(w * c["model"][key].double() for w, c in zip(weights, ckpts, strict=True)).to(t0.dtype)
+    # Each head's source: the checkpoints that have it, all alike (None: the average goes without it).
+    sources: dict[str, list[int] | None] = {}
+    for field, (absent, prefix, lam) in AUX_HEADS.items():
+        values = [c["config"].get("model", {}).get(field, absent) for c in ckpts]
+        have = [i for i, v in enumerate(values) if v and v != absent]
+        alike = bool(have) and all(values[i] == values[have[0]] for i in have)
+        if alike and (len(have) == len(ckpts) or keep_heads):
+            sources[prefix] = have
+            model_cfg[field] = values[have[0]]
+            train_cfg[lam] = ckpts[have[0]]["config"].get("train", {}).get(lam, 0.0)
+        elif have and keep_heads:
+            raise BidError(f"the checkpoints have {field} heads of different shapes "
+                           f"({sorted({str(values[i]) for i in have})}); --keep-heads needs them alike")
         else:
-            state[key] = t0.clone()
+            sources[prefix] = None
+            model_cfg[field] = absent
+            train_cfg[lam] = 0.0
+    state = {}
+    for c in ckpts:  # every key once, in the first order it appears in
+        for key, t0 in c["model"].items():
+            prefix = next((h for h in heads if key.startswith(h)), None)
+            if key in state or (prefix is not None and sources[prefix] is None):
+                continue
+            members = list(range(len(ckpts))) if prefix is None else sources[prefix]
+            if t0.is_floating_point():
+                total = sum(weights[i] for i in members)
+                # A head only zero-weighted checkpoints have: their plain mean.
+                share = {i: weights[i] / total if total > 0 else 1 / len(members) for i in members}
+                state[key] = sum(share[i] * ckpts[i]["model"][key].double() for i in members).to(t0.dtype)
+            else:
+                state[key] = ckpts[members[0]]["model"][key].clone()
     payload = {k: first[k] for k in SHIPPED_KEYS if k in first}
     payload["config"] = {**first["config"], "model": model_cfg, "train": train_cfg}
     payload.update(model=state, history=[], best_val_loss=math.inf, git_hash=git_hash(),

@@ -122,7 +122,7 @@ def _average(args: argparse.Namespace) -> int:
         weights = [float(w) for w in args.weights.split(",")] if args.weights else None
     except ValueError:
         raise BidError(f"--weights takes comma-separated numbers, got {args.weights!r}") from None
-    payload = average_checkpoints(args.checkpoints, args.out, weights)
+    payload = average_checkpoints(args.checkpoints, args.out, weights, keep_heads=args.keep_heads)
     parts = ", ".join(f"{a['weight']:.2f} x {a['path']}" for a in payload["init"]["average"])
     print(f"{args.out}: {parts}")
     return 0
@@ -160,6 +160,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     av.add_argument("checkpoints", nargs="+", help="two or more checkpoints of the same network")
     av.add_argument("--weights", default=None, help="comma-separated, one per checkpoint (default: equal)")
     av.add_argument("--out", required=True, help="the .pt to write (e.g. runs/NAME/last.pt, for `bid export`)")
+    av.add_argument("--keep-heads", action="store_true",
+                    help="keep an auxiliary head (--forecast, --hazard) that only some have, averaged over "
+                         "those (default: leave it out)")
     av.set_defaults(func=_average)
 
     le = sub.add_parser("lesion", help="closed-loop benchmark with each brain area switched off in turn")

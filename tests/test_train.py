@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from bid_model.augment import photometric
-from bid_model.checkpoint import load_checkpoint, load_model
+from bid_model.checkpoint import load_checkpoint, load_model, save_checkpoint
 from bid_model.config import RunConfig, tiny, with_variant
 from bid_model.data import synthetic_split
 from bid_model.model import BID
@@ -551,6 +551,27 @@ def test_hazard_head_trains_on_recordings_and_driving_ignores_it(recorded, tmp_p
     key = "areas.V1.conv1.0.weight"
     assert torch.allclose(avg["model"][key], (tuned["model"][key] + other[key]) / 2)
     load_model(tmp_path / "avg.pt", preset="tiny")  # a network like any other
+    # --keep-heads: the head comes from the one run that has it, the trunk is the mean as before.
+    assert bid(["average", str(tmp_path / "again" / "last.pt"), str(tmp_path / "hz" / "last.pt"),
+                "--weights", "3,1", "--keep-heads", "--out", str(tmp_path / "kept.pt")]) == 0
+    kept = load_checkpoint(tmp_path / "kept.pt")
+    assert kept["config"]["model"]["hazard"] and kept["config"]["train"]["lambda_hazard"] == 1.0
+    heads = [k for k in tuned["model"] if k.startswith("hazard_head.")]
+    assert heads and all(torch.equal(kept["model"][k], tuned["model"][k]) for k in heads)
+    assert torch.allclose(kept["model"][key], 0.75 * other[key] + 0.25 * tuned["model"][key])
+    model, _ = load_model(tmp_path / "kept.pt", preset="tiny")
+    assert model(x, x, torch.eye(6)[[3]], hazard=True)[1].shape == (1, 2)
+    # Heads of different shapes are not averaged: left out, or refused with --keep-heads.
+    for name, horizons in (("f1.pt", [1.0]), ("f2.pt", [1.0, 2.0])):
+        save_checkpoint(tmp_path / name, {**tuned, "config": {**tuned["config"], "model": {
+            **tuned["config"]["model"], "forecast_s": horizons}}})
+    pair = [str(tmp_path / "f1.pt"), str(tmp_path / "f2.pt")]
+    assert bid(["average", *pair, "--out", str(tmp_path / "f.pt")]) == 0
+    assert not load_checkpoint(tmp_path / "f.pt")["config"]["model"]["forecast_s"]
+    capsys.readouterr()
+    assert bid(["average", *pair, "--keep-heads", "--out", str(tmp_path / "g.pt")]) == 2
+    assert "forecast_s heads of different shapes" in capsys.readouterr().err
+    assert not (tmp_path / "g.pt").exists()
 
 
 def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
