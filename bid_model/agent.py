@@ -16,15 +16,23 @@ import torch
 
 from bid_model.checkpoint import load_model
 from bid_model.data import command_one_hot, prepare_frame
-from bid_model.hazards import HAZARD_AHEAD_M
+from bid_model.hazards import HAZARD_AHEAD_M, SEEN_NEARNESS
 from bid_sim.agents import EpisodeInfo, Observation
 from bid_sim.ego import Control, EgoParams
 from bid_sim.errors import BidError
 
-SEEN_NEARNESS = 0.2  # hazard nearness from which a pedestrian counts as seen: within 20 of 25 m
 STOP_SHORT_M = 2.0  # how far short of a seen pedestrian the ego brakes to stop
 HOLD_M = 8.0  # a pedestrian seen this close keeps a slow (< START_MPS) ego standing
 START_MPS = 2.0
+HEADWAY_S = 1.0  # a vehicle in the path closer than this many seconds at the ego's speed...
+MIN_GAP_M = 4.0  # ...plus this, front bumper to its back, is braked for
+VEHICLE_SHORT_M = 1.0  # how far short of it the ego would stop were it standing
+
+
+def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
+    """The share of full braking (0..1) that stops the ego `short_m` before `dist_m` ahead."""
+    gap = max(dist_m - short_m, 0.5)
+    return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
 
 
 def pedestrian_brake(nearness: float, speed_mps: float) -> float:
@@ -36,8 +44,22 @@ def pedestrian_brake(nearness: float, speed_mps: float) -> float:
     dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
     if speed_mps < START_MPS and dist_m < HOLD_M:
         return 1.0
-    gap = max(dist_m - STOP_SHORT_M, 0.5)
-    return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
+    return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
+
+
+def vehicle_brake(nearness: float, speed_mps: float) -> float:
+    """Braking, as a share of full braking (0..1), for a vehicle the hazard head sees in the
+    path at `nearness`: none while it is farther than HEADWAY_S at the ego's speed plus
+    MIN_GAP_M (a car ahead moving off, or followed at a safe gap), else as hard as stopping
+    VEHICLE_SHORT_M short of it would take, were it standing. The head gives no speed of its
+    own, so a slower car followed too closely is braked for as a standing one, and the ego
+    falls back to the headway."""
+    if nearness < SEEN_NEARNESS:
+        return 0.0
+    dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+    if dist_m > speed_mps * HEADWAY_S + MIN_GAP_M:
+        return 0.0
+    return _stop_short(dist_m, speed_mps, VEHICLE_SHORT_M)
 
 
 class BIDAgent:
@@ -51,13 +73,14 @@ class BIDAgent:
     network, as the control and trajectory branches of TCP (Wu et al. 2022) are.
     hazard_brake: for a model trained with `--hazard`, brake at least this gain times as hard
     as `pedestrian_brake` asks for the pedestrian its hazard head sees in the path (0: not).
+    vehicle_brake: likewise by `vehicle_brake` for the vehicle it sees there.
     """
 
     uses_camera = True
 
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
-                 hazard_brake: float = 0.0):
+                 hazard_brake: float = 0.0, vehicle_brake: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -66,12 +89,13 @@ class BIDAgent:
             raise BidError(f"{checkpoint} has no speed forecast to brake by; train it with --forecast "
                            "or drop forecast_brake")
         self.forecast_brake = forecast_brake
-        if not hazard_brake >= 0:
-            raise BidError(f"hazard_brake is a gain, 0 or more; got {hazard_brake}")
-        if hazard_brake > 0 and not self.config.model.hazard:
-            raise BidError(f"{checkpoint} has no hazard head to brake by; train it with --hazard "
-                           "or drop hazard_brake")
-        self.hazard_brake = hazard_brake
+        for name, gain in (("hazard_brake", hazard_brake), ("vehicle_brake", vehicle_brake)):
+            if not gain >= 0:
+                raise BidError(f"{name} is a gain, 0 or more; got {gain}")
+            if gain > 0 and not self.config.model.hazard:
+                raise BidError(f"{checkpoint} has no hazard head to brake by; train it with --hazard "
+                               f"or drop {name}")
+        self.hazard_brake, self.vehicle_brake = hazard_brake, vehicle_brake
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
@@ -93,7 +117,7 @@ class BIDAgent:
         speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
-        by_forecast, by_hazard = self.forecast_brake > 0, self.hazard_brake > 0
+        by_forecast, by_hazard = self.forecast_brake > 0, self.hazard_brake > 0 or self.vehicle_brake > 0
         if not (by_forecast or by_hazard):
             out = self.model(frame, prev, cmd, speed)[0]
             return Control(steer=float(out[0]), accel=float(out[1]))
@@ -107,9 +131,11 @@ class BIDAgent:
             if need > 0:
                 accel = min(accel, -self.forecast_brake * need)
         if by_hazard:
-            need = pedestrian_brake(float(extra.pop(0)[0, 0]), v)
+            near = extra.pop(0)[0]
+            need = max(self.hazard_brake * pedestrian_brake(float(near[0]), v),
+                       self.vehicle_brake * vehicle_brake(float(near[1]), v))
             if need > 0:
-                accel = min(accel, -self.hazard_brake * need)
+                accel = min(accel, -need)
         return Control(steer=float(control[0, 0]), accel=max(accel, -1.0))
 
     def overlay(self, frame: np.ndarray) -> np.ndarray | None:

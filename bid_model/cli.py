@@ -46,6 +46,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="also train a head saying how far ahead the nearest pedestrian and vehicle in the "
                         "ego's path are, learnt from the recordings' /scene, its L1 loss weighted WEIGHT "
                         "(0, none, by default); driving ignores it (bid_model/hazards.py)")
+    p.add_argument("--hazard-pos-weight", type=float, default=None, metavar="W",
+                   help="with --hazard, weigh each frame with a pedestrian (vehicle) in the path W times "
+                        "in the head's pedestrian (vehicle) loss, so that a rare kind is not fitted as "
+                        "'none' (1 by default)")
     p.add_argument("--frame-hw", default=None, metavar="ROWSxCOLS",
                    help="the network's input size, e.g. 96x288 (the preset's by default: small 64x192); "
                         "with --init from another size the token grids' positional embeddings are resized")

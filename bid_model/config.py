@@ -116,6 +116,8 @@ class TrainConfig:
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     lambda_forecast: float = 0.0  # weight of the speed forecast's L1 loss (model.forecast_s)
     lambda_hazard: float = 0.0  # weight of the hazard head's L1 loss (model.hazard)
+    # Weight, in that loss, of a frame with an actor of that kind in the path (train.hazard_loss).
+    hazard_pos_weight: float = 1.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)
     speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
     seed: int = 0

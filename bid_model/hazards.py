@@ -34,6 +34,10 @@ HAZARD_AHEAD_M = 25.0  # how far along the path to look: about 2 s at Town01's 1
 CORRIDOR_MARGIN_M = 0.4  # beyond the ego's half width: a pedestrian on the kerb is not in the path
 PATH_STEP_M = 0.5  # spacing of the path's sample points
 KINDS = ("pedestrian", "vehicle")  # the columns of the targets
+# The hazard head's nearness (1 - distance / HAZARD_AHEAD_M) from which an actor counts as seen
+# in the path, within 20 of the 25 m: where `bid evaluate --hazard-brake` / `--vehicle-brake` start.
+SEEN_NEARNESS = 0.2
+NEAR_M = 10.0  # an actor in the path this close must be seen (the validation's detection rate)
 _VERSION = "hazard-v1"  # part of the cache key: bump when the definition changes
 
 

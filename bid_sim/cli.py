@@ -132,11 +132,12 @@ def _evaluate(args: argparse.Namespace) -> int:
     densities = tuple(d.strip() for d in args.density.split(",") if d.strip())
     routes = [int(r) for r in args.routes.split(",")] if args.routes else None
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
-    for flag, value in (("--forecast-brake", args.forecast_brake), ("--hazard-brake", args.hazard_brake)):
+    brakes = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
+              "vehicle_brake": args.vehicle_brake}
+    for key, value in brakes.items():
         if value is not None and args.agent != "bid":
-            raise BidError(f"{flag} is an option of --agent bid, not of {args.agent!r}; drop it")
-    options = {k: v for k, v in (("forecast_brake", args.forecast_brake), ("hazard_brake", args.hazard_brake))
-               if v} or None
+            raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
+    options = {k: v for k, v in brakes.items() if v} or None
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
                        video=args.video, progress=not args.json, max_steps=args.max_steps,
@@ -277,6 +278,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
                          "hard as stopping short of the pedestrian its hazard head sees in the path takes, "
                          "and stay standing while one is within 8 m (bid_model/agent.py)")
+    ev.add_argument("--vehicle-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                         "hard as stopping short of the vehicle its hazard head sees in the path takes, "
+                         "once it is nearer than 1 s at the ego's speed + 4 m (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

@@ -163,6 +163,18 @@ def test_pedestrian_brake_stops_short_of_a_seen_pedestrian_and_holds_near_one():
     assert pedestrian_brake(1.0, 12.0) == 1.0  # at the bumper: all it has
 
 
+def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
+    from bid_model.agent import vehicle_brake
+
+    assert vehicle_brake(0.1, 10.0) == 0.0  # seen nowhere within 20 m
+    assert vehicle_brake(0.4, 10.0) == 0.0  # 15 m off at 10 m/s: beyond 1 s + 4 m
+    # 10 m off at 10 m/s: within 14 m; stop 1 m short, 100 / (2 · 9) m/s² of 8.
+    assert vehicle_brake(0.6, 10.0) == pytest.approx(100 / 18 / 8)
+    assert vehicle_brake(0.9, 0.0) == 0.0  # standing behind it: nothing to brake
+    assert vehicle_brake(0.9, 3.0) == pytest.approx(9 / 3 / 8)  # 2.5 m off at 3 m/s
+    assert vehicle_brake(1.0, 8.0) == 1.0
+
+
 def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, recorded, tmp_path, capsys):
     """With --hazard-brake the agent brakes at least as pedestrian_brake asks for what its
     hazard head says; without it, or with nothing seen, it drives on the control head."""
@@ -171,7 +183,7 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     import numpy as np
     import torch
 
-    from bid_model.agent import pedestrian_brake
+    from bid_model.agent import pedestrian_brake, vehicle_brake
     from bid_model.config import RunConfig
     from bid_sim.agents import Observation
 
@@ -192,8 +204,17 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         braking.reset(None)
         want = -pedestrian_brake(nearness, 6.0)
         assert braking.act(obs).accel == pytest.approx(min(free, want) if want < 0 else free, abs=1e-5)
-    with pytest.raises(BidError, match="no hazard head"):
-        BIDAgent(checkpoint, hazard_brake=1.0)
-    assert main(["evaluate", "--agent", "expert", "--hazard-brake", "1", "--out", str(tmp_path / "x")]) == 2
-    assert "--hazard-brake is an option of --agent bid" in capsys.readouterr().err
+    # A vehicle 2.5 m ahead (nearness 0.9 above) is braked for only with vehicle_brake.
+    both = BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=0.5)
+    with torch.no_grad():
+        both.model.hazard_head[-1].weight.zero_()
+        both.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.9]))
+    both.reset(None)
+    assert both.act(obs).accel == pytest.approx(min(free, -0.5 * vehicle_brake(0.9, 6.0)), abs=1e-5)
+    for option in ("hazard_brake", "vehicle_brake"):
+        with pytest.raises(BidError, match="no hazard head"):
+            BIDAgent(checkpoint, **{option: 1.0})
+    for flag in ("--hazard-brake", "--vehicle-brake"):
+        assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
+        assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 

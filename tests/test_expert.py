@@ -11,7 +11,15 @@ import shapely
 
 from bid_sim import metrics as m
 from bid_sim.episode import run_episode
-from bid_sim.expert import Expert, ExpertConfig, _build_plan, _idm, _route_crossings, _TownFacts, _travel_time
+from bid_sim.expert import (
+    Expert,
+    ExpertConfig,
+    _build_plan,
+    _idm,
+    _route_crossings,
+    _TownFacts,
+    _travel_time,
+)
 from bid_sim.routes import CHANGELANELEFT, RouteSpec, plan_spec, road_graph, route_by_index
 from bid_sim.snapshot import RED, Actors
 from bid_sim.town_map import load_town_map

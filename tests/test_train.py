@@ -533,6 +533,7 @@ def test_hazard_head_trains_on_recordings_and_driving_ignores_it(recorded, tmp_p
     assert not torch.allclose(other["areas.V1.conv1.0.weight"], tuned["model"]["areas.V1.conv1.0.weight"])
     rows = list(csv.DictReader((tmp_path / "hz" / "metrics.csv").open()))
     assert 0 <= float(rows[-1]["val_mae_hazard_m"]) <= 25.0
+    assert rows[-1]["val_ped_seen_none"] == "" or 0 <= float(rows[-1]["val_ped_seen_none"]) <= 1
     assert json.loads((tmp_path / "hz" / "dataset.json").read_text())["hazard_frames"] is not None
     model, _ = load_model(tmp_path / "hz" / "last.pt", preset="tiny")
     x = torch.zeros(1, 3, 32, 96, dtype=torch.uint8)
@@ -574,6 +575,40 @@ def test_hazard_head_trains_on_recordings_and_driving_ignores_it(recorded, tmp_p
     assert not (tmp_path / "g.pt").exists()
 
 
+def test_hazard_detection_counts_what_the_head_sees_near_and_where_there_is_nothing():
+    from bid_model.train import hazard_detection
+
+    # Targets (pedestrian, vehicle) nearness: 0.8 is 5 m off, 0.5 12.5 m, 0 nothing within 25 m.
+    target = torch.tensor([[0.8, 0.0], [0.8, 0.0], [0.5, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    pred = torch.tensor([[0.7, 0.0], [0.1, 0.3], [0.0, 0.0], [0.25, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    d = hazard_detection(pred, target)
+    assert d["pedestrian"] == {"seen_near": 0.5, "seen_none": pytest.approx(1 / 3)}
+    assert d["vehicle"] == {"seen_near": None, "seen_none": pytest.approx(1 / 6)}
+
+
+def test_hazard_pos_weight_makes_a_rare_hazard_worth_reporting():
+    """Pedestrians in the path in 20 % of frames: plain L1 fits "none" (the median), with
+    the frames that have one weighted 8 times a constant fitted by the loss reports it."""
+    from bid_model.train import hazard_loss
+
+    target = torch.tensor([[0.6, 0.0]] * 2 + [[0.0, 0.0]] * 8)
+
+    def fitted(pos_weight: float) -> float:
+        c = torch.zeros(1, 2, requires_grad=True)
+        opt = torch.optim.SGD([c], lr=0.01)
+        for _ in range(400):
+            opt.zero_grad()
+            hazard_loss(c.expand_as(target), target, pos_weight).backward()
+            opt.step()
+        return float(c.detach()[0, 0])
+
+    assert fitted(1.0) == pytest.approx(0.0, abs=0.02)
+    assert fitted(8.0) == pytest.approx(0.6, abs=0.02)
+    # Weight 1 is the plain mean absolute error.
+    pred = torch.rand(10, 2)
+    assert hazard_loss(pred, target) == pytest.approx(float((pred - target).abs().mean()))
+
+
 def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     import argparse
 
@@ -583,9 +618,13 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     parser = argparse.ArgumentParser()
     add_train_arguments(parser)
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5"]))
-    assert run.model.hazard and run.train.lambda_hazard == 0.5
+    assert run.model.hazard and run.train.lambda_hazard == 0.5 and run.train.hazard_pos_weight == 1.0
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-pos-weight", "8"]))
+    assert run.train.hazard_pos_weight == 8.0
     for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
-                        (["--synthetic", "--hazard", "-1"], "--hazard is the weight")):
+                        (["--synthetic", "--hazard", "-1"], "--hazard is the weight"),
+                        (["--hazard", "1", "--hazard-pos-weight", "0.5"], "1 or more"),
+                        (["--hazard-pos-weight", "8"], "add --hazard WEIGHT")):
         assert bid(["train", "--preset", "tiny", *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
