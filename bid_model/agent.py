@@ -27,6 +27,7 @@ START_MPS = 2.0
 HEADWAY_S = 1.0  # a vehicle in the path closer than this many seconds at the ego's speed...
 MIN_GAP_M = 4.0  # ...plus this, front bumper to its back, is braked for
 VEHICLE_SHORT_M = 1.0  # how far short of it the ego would stop were it standing
+LIGHT_SHORT_M = 1.0  # how far short of a red light's stop line the ego stops (as the expert)
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
@@ -35,16 +36,32 @@ def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
     return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
 
 
-def pedestrian_brake(nearness: float, speed_mps: float) -> float:
-    """Braking, as a share of full braking (0..1), to stop STOP_SHORT_M short of a pedestrian
-    the hazard head sees in the path at `nearness` (bid_model.recordings.hazard_nearness):
-    0 when it sees none; full while slow with one within HOLD_M, where the expert holds."""
+def _stop_and_hold(nearness: float, speed_mps: float, short_m: float) -> float:
+    """Braking (0..1) to stop `short_m` short of what the head sees at `nearness`: none when it
+    sees nothing; full while slow with it within HOLD_M, where the expert holds."""
     if nearness < SEEN_NEARNESS:
         return 0.0
     dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
     if speed_mps < START_MPS and dist_m < HOLD_M:
         return 1.0
-    return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
+    return _stop_short(dist_m, speed_mps, short_m)
+
+
+def pedestrian_brake(nearness: float, speed_mps: float) -> float:
+    """Braking, as a share of full braking (0..1), to stop STOP_SHORT_M short of a pedestrian
+    the hazard head sees in the path at `nearness` (bid_model.recordings.hazard_nearness):
+    0 when it sees none; full while slow with one within HOLD_M, where the expert holds."""
+    return _stop_and_hold(nearness, speed_mps, STOP_SHORT_M)
+
+
+def light_brake(nearness: float, speed_mps: float) -> float:
+    """Braking (0..1) to stop LIGHT_SHORT_M short of the stop line of the red or amber light the
+    hazard head sees at `nearness`. It does not hold a standing ego (moving off is the control
+    head's call): holding while the head saw a light within HOLD_M left 6 of 26 episodes
+    standing ("blocked"; docs/experiments.md)."""
+    if nearness < SEEN_NEARNESS:
+        return 0.0
+    return _stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, LIGHT_SHORT_M)
 
 
 def vehicle_brake(nearness: float, speed_mps: float) -> float:
@@ -74,13 +91,15 @@ class BIDAgent:
     hazard_brake: for a model trained with `--hazard`, brake at least this gain times as hard
     as `pedestrian_brake` asks for the pedestrian its hazard head sees in the path (0: not).
     vehicle_brake: likewise by `vehicle_brake` for the vehicle it sees there.
+    light_brake: likewise by `light_brake` for the red light it sees ahead (a head trained
+    with the red-light output, model.hazard_light).
     """
 
     uses_camera = True
 
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
-                 hazard_brake: float = 0.0, vehicle_brake: float = 0.0):
+                 hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -89,13 +108,17 @@ class BIDAgent:
             raise BidError(f"{checkpoint} has no speed forecast to brake by; train it with --forecast "
                            "or drop forecast_brake")
         self.forecast_brake = forecast_brake
-        for name, gain in (("hazard_brake", hazard_brake), ("vehicle_brake", vehicle_brake)):
+        for name, gain in (("hazard_brake", hazard_brake), ("vehicle_brake", vehicle_brake),
+                           ("light_brake", light_brake)):
             if not gain >= 0:
                 raise BidError(f"{name} is a gain, 0 or more; got {gain}")
             if gain > 0 and not self.config.model.hazard:
                 raise BidError(f"{checkpoint} has no hazard head to brake by; train it with --hazard "
                                f"or drop {name}")
-        self.hazard_brake, self.vehicle_brake = hazard_brake, vehicle_brake
+        if light_brake > 0 and not self.config.model.hazard_light:
+            raise BidError(f"{checkpoint}'s hazard head has no red-light output (trained before it existed); "
+                           "train one with --hazard, or drop light_brake")
+        self.hazard_brake, self.vehicle_brake, self.light_brake = hazard_brake, vehicle_brake, light_brake
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
@@ -117,7 +140,8 @@ class BIDAgent:
         speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
-        by_forecast, by_hazard = self.forecast_brake > 0, self.hazard_brake > 0 or self.vehicle_brake > 0
+        by_forecast = self.forecast_brake > 0
+        by_hazard = self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
         if not (by_forecast or by_hazard):
             out = self.model(frame, prev, cmd, speed)[0]
             return Control(steer=float(out[0]), accel=float(out[1]))
@@ -133,7 +157,8 @@ class BIDAgent:
         if by_hazard:
             near = extra.pop(0)[0]
             need = max(self.hazard_brake * pedestrian_brake(float(near[0]), v),
-                       self.vehicle_brake * vehicle_brake(float(near[1]), v))
+                       self.vehicle_brake * vehicle_brake(float(near[1]), v),
+                       self.light_brake * light_brake(float(near[2]), v) if self.light_brake > 0 else 0.0)
             if need > 0:
                 accel = min(accel, -need)
         return Control(steer=float(control[0, 0]), accel=max(accel, -1.0))

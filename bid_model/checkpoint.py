@@ -95,6 +95,8 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
 # Checkpoints that differ only in them average into one without the heads they do not all have.
 AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
              "hazard": (False, "hazard_head.", "lambda_hazard")}
+# Fields that shape a head beside its own (→ their value without it): heads alike agree on them too.
+HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False}}
 
 
 def average_checkpoints(paths: list[str | Path], out: str | Path,
@@ -121,25 +123,27 @@ def average_checkpoints(paths: list[str | Path], out: str | Path,
     for p, c in zip(paths[1:], ckpts[1:], strict=True):
         theirs = c["config"].get("model", {})
         diff = {k for k in model_cfg.keys() | theirs.keys() if model_cfg.get(k) != theirs.get(k)}
-        if diff - AUX_HEADS.keys() or {k for k in c["model"] if not k.startswith(heads)} != trunk:
+        if diff - AUX_HEADS.keys() - {k for shape in HEAD_SHAPE.values() for k in shape} or {k for k in c["model"] if not k.startswith(heads)} != trunk:
             raise BidError(f"{p} is another network than {paths[0]} (model config or weights differ); "
                            "average only fine-tunings of one model")
     # Each head's source: the checkpoints that have it, all alike (None: the average goes without it).
     sources: dict[str, list[int] | None] = {}
     for field, (absent, prefix, lam) in AUX_HEADS.items():
-        values = [c["config"].get("model", {}).get(field, absent) for c in ckpts]
-        have = [i for i, v in enumerate(values) if v and v != absent]
+        fields = {field: absent, **HEAD_SHAPE[field]}
+        values = [tuple(c["config"].get("model", {}).get(f, a) for f, a in fields.items()) for c in ckpts]
+        have = [i for i, v in enumerate(values) if v[0] and v[0] != absent]
         alike = bool(have) and all(values[i] == values[have[0]] for i in have)
         if alike and (len(have) == len(ckpts) or keep_heads):
             sources[prefix] = have
-            model_cfg[field] = values[have[0]]
+            model_cfg.update(zip(fields, values[have[0]], strict=True))
             train_cfg[lam] = ckpts[have[0]]["config"].get("train", {}).get(lam, 0.0)
         elif have and keep_heads:
             raise BidError(f"the checkpoints have {field} heads of different shapes "
-                           f"({sorted({str(values[i]) for i in have})}); --keep-heads needs them alike")
+                           f"({sorted({str(values[i][0] if len(fields) == 1 else values[i]) for i in have})}); "
+                           "--keep-heads needs them alike")
         else:
             sources[prefix] = None
-            model_cfg[field] = absent
+            model_cfg.update(fields)
             train_cfg[lam] = 0.0
     state = {}
     for c in ckpts:  # every key once, in the first order it appears in

@@ -62,6 +62,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "gaps from the frames rather than the speed alone (0, exact, by default)")
     p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the measured speed to the network (off in paper, on in small)")
+    p.add_argument("--train-only", default=None, metavar="PARTS",
+                   help="train only these parts, comma-separated (areas V1 ... CPC, or forecast, hazard, "
+                        "speed, dorsal_tokens); the rest stays as --init left it, e.g. --train-only hazard")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")

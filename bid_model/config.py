@@ -26,7 +26,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
-INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard"}
+INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -73,6 +73,9 @@ class ModelConfig:
     # An auxiliary head for what stands in the path: the distance to the nearest pedestrian
     # and vehicle in it (bid_model.hazards; BID.forward(hazard=True)). A training signal only.
     hazard: bool = False
+    # With it, a third output: how near the stop line of a red or amber light on the route is
+    # (bid_model.hazards.light_distance). Every new --hazard head has it; older ones do not.
+    hazard_light: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -120,6 +123,7 @@ class TrainConfig:
     hazard_pos_weight: float = 1.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)
     speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
+    train_only: tuple[str, ...] = ()  # the parts trained (BID.parts), the rest frozen; () all (train.freeze_all_but)
     seed: int = 0
     workers: int = 2
     synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`

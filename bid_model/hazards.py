@@ -8,7 +8,8 @@ path it drove. For each frame, the path is the next HAZARD_AHEAD_M metres of tha
 plus CORRIDOR_MARGIN_M either side of it; an actor whose footprint enters the corridor is in the
 path, at the arc length where it first does, from the ego's front bumper. A frame's targets are
 the distances to the nearest pedestrian and the nearest vehicle in the path, capped at
-HAZARD_AHEAD_M (nothing in the path within it).
+HAZARD_AHEAD_M (nothing in the path within it), and (light_distance) to the stop line of a red
+or amber light on the route, from the frame's recorded /ego/state.
 
 Footprints are three discs along an actor's length (one for a pedestrian, whose box is square):
 a stadium as wide as the box, close enough for a 4.6 m car beside a 3.5 m lane.
@@ -26,14 +27,15 @@ import numpy as np
 
 from bid_sim.errors import BidError
 from bid_sim.recording import read_snapshots
-from bid_sim.snapshot import Actors, Snapshot
+from bid_sim.snapshot import RED, YELLOW, Actors, Snapshot
 
 log = logging.getLogger(__name__)
 
 HAZARD_AHEAD_M = 25.0  # how far along the path to look: about 2 s at Town01's 11 m/s, and a stop
 CORRIDOR_MARGIN_M = 0.4  # beyond the ego's half width: a pedestrian on the kerb is not in the path
 PATH_STEP_M = 0.5  # spacing of the path's sample points
-KINDS = ("pedestrian", "vehicle")  # the columns of the targets
+KINDS = ("pedestrian", "vehicle", "red_light")  # the columns of the targets (red_light: model.hazard_light)
+PATH_KINDS = KINDS[:2]  # those found in the path (path_hazards)
 # The hazard head's nearness (1 - distance / HAZARD_AHEAD_M) from which an actor counts as seen
 # in the path, within 20 of the 25 m: where `bid evaluate --hazard-brake` / `--vehicle-brake` start.
 SEEN_NEARNESS = 0.2
@@ -76,10 +78,19 @@ def _nearest_in_path(actors: Actors, path: np.ndarray, half_width: float, front_
     return float(np.clip(s - front_m, 0.0, HAZARD_AHEAD_M))
 
 
+def light_distance(state: dict) -> float:
+    """Metres from the ego's front to the stop line of the red or amber light on its route, from
+    a recorded /ego/state (HAZARD_AHEAD_M: none, or farther): the hazard head's third target."""
+    dist = state.get("next_light_dist_m")
+    if state.get("next_light_state") not in (RED, YELLOW) or dist is None:
+        return HAZARD_AHEAD_M
+    return float(np.clip(dist, 0.0, HAZARD_AHEAD_M))
+
+
 def path_hazards(snaps: list[Snapshot]) -> np.ndarray:
     """(T, 2) float32: per snapshot (one episode, in step order) the distance in metres from
     the ego's front to the nearest pedestrian and vehicle in its path (HAZARD_AHEAD_M: none)."""
-    out = np.full((len(snaps), len(KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
+    out = np.full((len(snaps), len(PATH_KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
     if not snaps:
         return out
     xy = np.array([(s.ego.x_m, s.ego.y_m) for s in snaps], dtype=np.float64)
@@ -127,9 +138,9 @@ def index_hazards(files: list[Path], episode: np.ndarray, step: np.ndarray, cach
     path = cache_dir / f"hazards-{_key(files)}.npy" if cache_dir is not None else None
     if path is not None and path.exists():
         cached = np.load(path)
-        if cached.shape == (len(step), len(KINDS)):
+        if cached.shape == (len(step), len(PATH_KINDS)):
             return cached
-    out = np.full((len(step), len(KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
+    out = np.full((len(step), len(PATH_KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
     wanted = sorted(set(np.unique(episode).tolist()))
     jobs = [str(files[e]) for e in wanted]
     workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))

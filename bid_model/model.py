@@ -8,7 +8,8 @@ With `config.forecast_s` a small head beside CPC also forecasts the speed those 
 ahead from MPC's tokens: an auxiliary training target (`forward(..., forecast=True)`) that
 asks the decision network to see a slowdown coming (a corner, a red light, a queue) before
 the expert's braking starts; driving never reads it. With `config.hazard` another says how
-far ahead the nearest pedestrian and vehicle in the ego's path are (bid_model.hazards), also
+far ahead the nearest pedestrian and vehicle in the ego's path are, and the stop line of a red
+light on its route (bid_model.hazards), also
 from MPC's tokens (`forward(..., hazard=True)`): it asks the network to tell a pedestrian in
 its path from one beside it. Driving never reads it either.
 
@@ -105,10 +106,10 @@ class BID(nn.Module):
         self.forecast_head = (nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
                                             nn.Linear(c.cpc_hidden[1], len(c.forecast_s)))
                               if c.forecast_s else None)
-        # Auxiliary hazard head: (pedestrian, vehicle) nearness in the path, 1 − distance /
-        # HAZARD_AHEAD_M (0: none within it); not an area (no lesions).
+        # Auxiliary hazard head: (pedestrian, vehicle[, red light]) nearness in the path, 1 −
+        # distance / HAZARD_AHEAD_M (0: none within it); not an area (no lesions).
         self.hazard_head = (nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
-                                          nn.Linear(c.cpc_hidden[1], 2))
+                                          nn.Linear(c.cpc_hidden[1], self.hazard_kinds()))
                             if c.hazard else None)
 
         for name, shape in self.output_shapes().items():
@@ -117,6 +118,10 @@ class BID(nn.Module):
         self.lesions: dict[str, str] = {}
 
     # --- shapes ---------------------------------------------------------------------------
+
+    def hazard_kinds(self) -> int:
+        """How many of bid_model.hazards.KINDS the hazard head says (0: no head)."""
+        return (2 + self.config.hazard_light) if self.config.hazard else 0
 
     def grid_hw(self) -> dict[str, tuple[int, int]]:
         """(rows, cols) of the feature grid of each perception area."""
@@ -153,7 +158,7 @@ class BID(nn.Module):
             return torch.zeros_like(out)
         if mode == "mean":
             return mean.to(out.dtype).expand_as(out).clone()
-        if self.training:
+        if self.areas[name].training:  # not while frozen (bid train --train-only)
             with torch.no_grad():
                 # Cumulative average at first, then an exponential one that follows training.
                 m = max(self.config.lesion_momentum, 1.0 / (int(self.mean_batches) + 1))
@@ -231,7 +236,8 @@ class BID(nn.Module):
         return self.forecast_head(features["MPC"].mean(dim=1)) * SPEED_SCALE_MPS
 
     def forward_hazard(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
-        """(batch, 2): nearness of the nearest (pedestrian, vehicle) in the path, from MPC's tokens."""
+        """(batch, hazard_kinds()): nearness of the nearest (pedestrian, vehicle) in the path and,
+        with config.hazard_light, of a red light's stop line, from MPC's tokens."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
         return self.hazard_head(features["MPC"].mean(dim=1))
@@ -241,21 +247,22 @@ class BID(nn.Module):
                 forecast: bool = False, hazard: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
         """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6);
         with `forecast` and/or `hazard`, ((steer, accel), then the forecast speeds (B,
-        len(forecast_s)) in m/s, then the hazard nearness (B, 2), those asked for, in that order)."""
+        len(forecast_s)) in m/s, then the hazard nearness (B, hazard_kinds()), those asked for, in that order)."""
         feats = self.forward_features(frame_t, frame_prev, command_onehot, speed_mps)
         control = self.forward_head(feats)
         extra = ([self.forward_forecast(feats)] if forecast else []) + ([self.forward_hazard(feats)] if hazard else [])
         return (control, *extra) if extra else control
 
+    def parts(self) -> dict[str, nn.Module]:
+        """Every area by name, then the optional extra pathways this model has: dorsal_tokens,
+        speed, forecast, hazard (the names of parameter_counts and `bid train --train-only`)."""
+        extra = (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
+                 ("forecast", self.forecast_head), ("hazard", self.hazard_head))
+        return {**self.areas, **{name: module for name, module in extra if module is not None}}
+
     def parameter_counts(self) -> dict[str, int]:
         """Number of parameters of each area (and of the optional extra pathways)."""
-        counts = {name: sum(p.numel() for p in area.parameters())
-                  for name, area in self.areas.items()}
-        for name, module in (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
-                             ("forecast", self.forecast_head), ("hazard", self.hazard_head)):
-            if module is not None:
-                counts[name] = sum(p.numel() for p in module.parameters())
-        return counts
+        return {name: sum(p.numel() for p in part.parameters()) for name, part in self.parts().items()}
 
 
 @contextlib.contextmanager

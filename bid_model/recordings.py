@@ -28,7 +28,7 @@ import torch
 from torch.utils.data import Dataset
 
 from bid_model.data import resize_frame, split_episodes
-from bid_model.hazards import HAZARD_AHEAD_M, index_hazards
+from bid_model.hazards import HAZARD_AHEAD_M, index_hazards, light_distance
 from bid_sim.errors import BidError
 from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
 from bid_sim.snapshot import RED, YELLOW
@@ -53,6 +53,8 @@ class _Index:
     jpeg: list[bytes] | None  # kept only without the cache
     # (N,) bool: a red or amber light on the route within LIGHT_STOP_M (None: not known, none)
     light_stop: np.ndarray | None = None
+    # (N,) float32: metres to the stop line of a red or amber light on the route (hazards.light_distance)
+    light_dist: np.ndarray | None = None
 
 
 def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
@@ -67,7 +69,7 @@ def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
 
 def _index(files: list[Path], keep_jpeg: bool) -> _Index:
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("episode", "step", "prev", "command", "speed", "steer", "accel",
-                                                         "light_stop")}
+                                                         "light_stop", "light_dist")}
     facts, jpeg = [], [] if keep_jpeg else None
     n = 0
     for e, f in enumerate(files):
@@ -86,6 +88,7 @@ def _index(files: list[Path], keep_jpeg: bool) -> _Index:
         cols["steer"].append(ep.steer)
         cols["accel"].append(ep.accel)
         cols["light_stop"].append(np.array([light_stops(st) for st in ep.states], dtype=bool))
+        cols["light_dist"].append(np.array([light_distance(st) for st in ep.states], dtype=np.float32))
         if jpeg is not None:
             jpeg.extend(ep.jpeg)
         n += m
@@ -93,7 +96,7 @@ def _index(files: list[Path], keep_jpeg: bool) -> _Index:
     return _Index(files, facts, arr["episode"].astype(np.int64), arr["step"].astype(np.int64),
                   arr["prev"].astype(np.int64), arr["command"].astype(np.int64), arr["speed"].astype(np.float32),
                   arr["steer"].astype(np.float32), arr["accel"].astype(np.float32), jpeg,
-                  arr["light_stop"].astype(bool))
+                  arr["light_stop"].astype(bool), arr["light_dist"].astype(np.float32))
 
 
 def light_stops(state: dict) -> bool:
@@ -403,7 +406,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     frame and label as recorded, so its errors stay those of real driving. With
     `forecast_steps` the samples of both also hold "future_speed", the speeds that many steps
     ahead (`future_speeds`); with `hazard`, "hazard", what stands in the path
-    (`hazard_nearness` of bid_model.hazards.index_hazards, cached beside the frames).
+    (`hazard_nearness` of bid_model.hazards.index_hazards, cached beside the frames) and how
+    near a red light's stop line is (hazards.light_distance): (pedestrian, vehicle, red_light).
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -428,8 +432,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
     near = None
     if hazard:
-        near = hazard_nearness(index_hazards(index.files, index.episode, index.step,
-                                             folder / CACHE_DIR if cache else None))
+        in_path = index_hazards(index.files, index.episode, index.step, folder / CACHE_DIR if cache else None)
+        near = hazard_nearness(np.column_stack([in_path, index.light_dist]))
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed), accel, forecast, near)
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near)
@@ -443,7 +447,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "hard_repeat": hard_repeat, "hard_brake": hard_brake, "brake_lookahead": brake_lookahead,
         "forecast_steps": list(forecast_steps),
         "hazard_frames": None if near is None else {"pedestrian_in_path": int((near[:, 0] > 0).sum()),
-                                                    "vehicle_in_path": int((near[:, 1] > 0).sum())},
+                                                    "vehicle_in_path": int((near[:, 1] > 0).sum()),
+                                                    "red_light_ahead": int((near[:, 2] > 0).sum())},
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
         "hold_repeat": hold_repeat, "train_yield_frames": int(yield_frames(index, accel)[balanced].sum()),

@@ -69,7 +69,7 @@ DEFAULT_DATA = Path("data/town01")
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
                   "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "val_mae_hazard_m", "val_ped_seen_near", "val_ped_seen_none",
-                  "lr", "samples_per_s", "time_s")
+                  "val_light_seen_near", "val_light_seen_none", "lr", "samples_per_s", "time_s")
 
 
 # --- pieces ----------------------------------------------------------------------------------
@@ -83,6 +83,32 @@ def make_optimizer(model: nn.Module, tc: TrainConfig) -> torch.optim.AdamW:
             (decay if p.ndim >= 2 and not name.endswith("embed") else keep).append(p)
     return torch.optim.AdamW([{"params": decay, "weight_decay": tc.weight_decay},
                               {"params": keep, "weight_decay": 0.0}], lr=tc.lr)
+
+
+def freeze_all_but(model: BID, names: tuple[str, ...]) -> None:
+    """Train only the parts `names` of `model` (BID.parts: areas, forecast, hazard, ...): every
+    other parameter stops requiring a gradient, so a head can be fitted to a trunk that stays
+    exactly as it was (`bid train --init CKPT --train-only hazard`)."""
+    parts = model.parts()
+    unknown = [name for name in names if name not in parts]
+    if unknown:
+        raise BidError(f"--train-only {','.join(unknown)}: this {model.config.variant} model has no such part; "
+                       f"it has {', '.join(parts)}")
+    keep = {id(p) for name in names for p in parts[name].parameters()}
+    for p in model.parameters():
+        p.requires_grad_(id(p) in keep)
+
+
+def set_train_mode(model: BID, tc: TrainConfig) -> None:
+    """model.train(), or with tc.train_only only those parts: the frozen ones stay in eval mode,
+    their batch norms' statistics and mean activations (for lesions) untouched."""
+    if not tc.train_only:
+        model.train()
+        return
+    model.eval()
+    parts = model.parts()
+    for name in tc.train_only:
+        parts[name].train()
 
 
 def l1_loss(pred: torch.Tensor, target: torch.Tensor, tc: TrainConfig) -> torch.Tensor:
@@ -118,7 +144,7 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
 
 
 def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, float | None]]:
-    """Per kind (KINDS) of the hazard head's nearness (B, 2) against its targets: `seen_near`,
+    """Per kind (KINDS, as many as the head has) of its nearness (B, K) against its targets: `seen_near`,
     the share of frames with one in the path within NEAR_M that the head sees (nearness ≥
     SEEN_NEARNESS, where --hazard-brake starts), and `seen_none`, the share of frames with none
     within HAZARD_AHEAD_M where it sees one all the same (None where no frame is of that kind)."""
@@ -129,7 +155,8 @@ def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict
     def share(k: int, rows: torch.Tensor) -> float | None:
         return float(seen[rows[:, k], k].float().mean()) if rows[:, k].any() else None
 
-    return {kind: {"seen_near": share(k, near), "seen_none": share(k, none)} for k, kind in enumerate(KINDS)}
+    return {kind: {"seen_near": share(k, near), "seen_none": share(k, none)}
+            for k, kind in enumerate(KINDS[:pred.shape[1]])}
 
 
 def _split_outputs(out: torch.Tensor | tuple[torch.Tensor, ...], tc: TrainConfig
@@ -428,7 +455,7 @@ def _write_metrics(history: list[dict[str, Any]], path: Path) -> None:
 def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, tc: TrainConfig,
                 device: torch.device, bar_desc: str | None) -> tuple[float, int]:
     """One pass over `loader`; (sum of batch losses × batch sizes, samples) of this process."""
-    net.train()
+    set_train_mode(net.module if isinstance(net, nn.parallel.DistributedDataParallel) else net, tc)
     loss_sum = torch.zeros((), dtype=torch.float64, device=device)
     samples, t0 = 0, time.perf_counter()
     bar = tqdm(loader, desc=bar_desc, unit="batch", disable=bar_desc is None, leave=False,
@@ -445,7 +472,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
         if ahead is not None:
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
         if hazard is not None:
-            loss = loss + tc.lambda_hazard * hazard_loss(hazard, batch["hazard"].to(device), tc.hazard_pos_weight)
+            loss = loss + tc.lambda_hazard * hazard_loss(hazard, batch["hazard"][:, :hazard.shape[1]].to(device),
+                                                         tc.hazard_pos_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -473,7 +501,7 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
                 forecast_err.append((ahead.float().cpu() - batch["future_speed"]).abs())
             if hazard is not None:
                 hazard_pred.append(hazard.float().cpu())
-                hazard_true.append(batch["hazard"])
+                hazard_true.append(batch["hazard"][:, :hazard.shape[1]])
             preds.append(pred.float().cpu())
         targets.append(target.cpu())
         episodes.append(torch.as_tensor(batch["episode"]))
@@ -589,6 +617,9 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
             raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
                            f"train with its preset and flags, or start from scratch")
     tc = config.train
+    if tc.train_only:  # a wrong name is refused before the data is opened
+        with torch.device("meta"):
+            freeze_all_but(BID(config.model), tc.train_only)
 
     dist = init_distributed(device)
     dev = pick_device(device, dist)
@@ -598,9 +629,10 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     if tc.lambda_forecast > 0 and tuple(getattr(first.get("future_speed"), "shape", ())) != (len(config.model.forecast_s),):
         raise BidError(f"--forecast needs dataset items with 'future_speed', {len(config.model.forecast_s)} speeds "
                        "ahead (see the contract in bid_model/data.py)")
-    if tc.lambda_hazard > 0 and tuple(getattr(first.get("hazard"), "shape", ())) != (2,):
-        raise BidError("--hazard needs dataset items with 'hazard', the nearness of a pedestrian and a vehicle "
-                       "in the path (bid_model.recordings.hazard_nearness)")
+    kinds = (2 + config.model.hazard_light) if config.model.hazard else 0
+    if tc.lambda_hazard > 0 and getattr(first.get("hazard"), "shape", (0,))[0] < kinds:
+        raise BidError(f"--hazard needs dataset items with 'hazard', {kinds} nearnesses: of a pedestrian and a "
+                       "vehicle in the path and a red light ahead (bid_model.recordings.hazard_nearness)")
 
     shards = dist.world if shards is None else shards
     torch.manual_seed(tc.seed)
@@ -617,6 +649,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         model = sync_batch_norm(model, dev)
     if compile_areas:
         compile_each_area(model)
+    if tc.train_only:
+        freeze_all_but(model, tc.train_only)
     opt = make_optimizer(model, tc)
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, list(tc.milestones), tc.lr_gamma)
     start, history, best = 0, [], math.inf
@@ -694,8 +728,10 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         row["val_mae_forecast_mps"] = float(np.mean(per_horizon)) if per_horizon else None
         per_kind = val["val_mae_hazard_m"] if val else []
         row["val_mae_hazard_m"] = float(np.mean(per_kind)) if per_kind else None
-        ped = (val["val_hazard_detection"] if val else {}).get("pedestrian", {})
-        row.update(val_ped_seen_near=ped.get("seen_near"), val_ped_seen_none=ped.get("seen_none"))
+        detection = val["val_hazard_detection"] if val else {}
+        ped, light = detection.get("pedestrian", {}), detection.get("red_light", {})
+        row.update(val_ped_seen_near=ped.get("seen_near"), val_ped_seen_none=ped.get("seen_none"),
+                   val_light_seen_near=light.get("seen_near"), val_light_seen_none=light.get("seen_none"))
         row.update(lr=lr, samples_per_s=samples / train_s, time_s=time.perf_counter() - t0)
         history.append(row)
         score = row["val_loss"] if val else row["train_loss"]
@@ -749,7 +785,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
-             "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight}
+             "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
+             "--train-only": args.train_only}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -803,7 +840,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     if args.hazard is not None:
         if not args.hazard >= 0:
             raise BidError(f"--hazard is the weight of the hazard head's loss, 0 or more; got {args.hazard}")
-        model = dataclasses.replace(model, hazard=args.hazard > 0)
+        model = dataclasses.replace(model, hazard=args.hazard > 0, hazard_light=args.hazard > 0)
         tc = dataclasses.replace(tc, lambda_hazard=args.hazard)
     if args.hazard_pos_weight is not None:
         if not args.hazard_pos_weight >= 1:
@@ -812,6 +849,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard:
             raise BidError("--hazard-pos-weight weighs the hazard head's loss: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, hazard_pos_weight=args.hazard_pos_weight)
+    if args.train_only is not None:
+        names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
+        if not names:
+            raise BidError("--train-only names the parts to train, e.g. --train-only hazard or MPC,CPC")
+        tc = dataclasses.replace(tc, train_only=names)
     return RunConfig(model, tc)
 
 

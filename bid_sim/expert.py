@@ -301,7 +301,7 @@ def _route_crossings(polyline: np.ndarray, facts: _TownFacts) -> tuple[tuple[flo
             continue
         inside = np.concatenate([[False], shapely.contains_xy(polygon, x, y), [False]])
         edges = np.flatnonzero(np.diff(inside.astype(np.int8)))
-        out += [(float(s[a]), float(s[b - 1])) for a, b in zip(edges[::2], edges[1::2])]
+        out += [(float(s[a]), float(s[b - 1])) for a, b in zip(edges[::2], edges[1::2], strict=True)]
     return tuple(sorted(out))
 
 

@@ -10,6 +10,7 @@ from bid_model.agent import BIDAgent
 from bid_model.config import tiny
 from bid_model.train import train
 from bid_sim.cli import main
+from bid_sim.ego import EgoParams
 from bid_sim.episode import run_episode
 from bid_sim.errors import BidError
 from bid_sim.evaluate import load_agent
@@ -183,12 +184,13 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     import numpy as np
     import torch
 
-    from bid_model.agent import pedestrian_brake, vehicle_brake
+    from bid_model.agent import light_brake, pedestrian_brake, vehicle_brake
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
     from bid_model.config import RunConfig
     from bid_sim.agents import Observation
 
     cfg = tiny()
-    run = RunConfig(dataclasses.replace(cfg.model, hazard=True),
+    run = RunConfig(dataclasses.replace(cfg.model, hazard=True, hazard_light=True),
                     dataclasses.replace(cfg.train.with_epochs(1), lambda_hazard=1.0))
     train(tmp_path / "hz", run, data=recorded, progress=False)
     plain = BIDAgent(tmp_path / "hz" / "last.pt")
@@ -200,7 +202,7 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     for nearness in (0.0, 0.6, 0.9):
         with torch.no_grad():  # the head says a pedestrian at this nearness, whatever it sees
             last.weight.zero_()
-            last.bias.copy_(torch.tensor([nearness, 0.9]))
+            last.bias.copy_(torch.tensor([nearness, 0.9, 0.9]))
         braking.reset(None)
         want = -pedestrian_brake(nearness, 6.0)
         assert braking.act(obs).accel == pytest.approx(min(free, want) if want < 0 else free, abs=1e-5)
@@ -208,13 +210,33 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     both = BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=0.5)
     with torch.no_grad():
         both.model.hazard_head[-1].weight.zero_()
-        both.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.9]))
+        both.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.9, 0.0]))
     both.reset(None)
     assert both.act(obs).accel == pytest.approx(min(free, -0.5 * vehicle_brake(0.9, 6.0)), abs=1e-5)
-    for option in ("hazard_brake", "vehicle_brake"):
+    # A red light's stop line 5 m ahead (nearness 0.8) is braked for only with light_brake, to
+    # stop 1 m short; a standing ego is not held (moving off is the control head's call).
+    assert light_brake(0.0, 6.0) == 0.0 and light_brake(0.8, 6.0) == pytest.approx(36 / 8 / EgoParams.max_brake_mps2)
+    assert light_brake(0.8, 0.0) == 0.0 and light_brake(0.8, 0.5) < 0.01
+    lights = BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0)
+    for agent in (lights, both):
+        with torch.no_grad():
+            agent.model.hazard_head[-1].weight.zero_()
+            agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.0, 0.8]))
+        agent.reset(None)
+    assert lights.act(obs).accel == pytest.approx(min(free, -light_brake(0.8, 6.0)), abs=1e-5)
+    assert both.act(obs).accel == pytest.approx(free, abs=1e-5)
+    # A head trained before the red-light output existed: light_brake is refused, the rest drives.
+    old = load_checkpoint(tmp_path / "hz" / "last.pt")
+    old["config"]["model"]["hazard_light"] = False
+    old["model"] = {k: (v[:2] if k.startswith("hazard_head.2.") else v) for k, v in old["model"].items()}
+    save_checkpoint(tmp_path / "old.pt", old)
+    BIDAgent(tmp_path / "old.pt", vehicle_brake=1.0).act(obs)
+    with pytest.raises(BidError, match="no red-light output"):
+        BIDAgent(tmp_path / "old.pt", light_brake=1.0)
+    for option in ("hazard_brake", "vehicle_brake", "light_brake"):
         with pytest.raises(BidError, match="no hazard head"):
             BIDAgent(checkpoint, **{option: 1.0})
-    for flag in ("--hazard-brake", "--vehicle-brake"):
+    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake"):
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 

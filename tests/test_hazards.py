@@ -6,10 +6,16 @@ import math
 import numpy as np
 import pytest
 
-from bid_model.hazards import HAZARD_AHEAD_M, file_hazards, index_hazards, path_hazards
+from bid_model.hazards import (
+    HAZARD_AHEAD_M,
+    file_hazards,
+    index_hazards,
+    light_distance,
+    path_hazards,
+)
 from bid_model.recordings import CACHE_DIR, find_recordings, hazard_nearness, open_recordings
 from bid_sim.recording import read_episode
-from bid_sim.snapshot import Actors, EgoView, Snapshot
+from bid_sim.snapshot import GREEN, RED, YELLOW, Actors, EgoView, Snapshot
 
 FRONT_M = 2.3  # half the ego's 4.6 m
 
@@ -98,18 +104,29 @@ def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
     assert len(cached) == 1
     dist_all = index_hazards(files, train.index.episode, train.index.step, None, workers=1)
     assert np.array_equal(np.load(cached[0]), dist_all)
-    want = hazard_nearness(dist_all)
+    light = np.concatenate([[light_distance(s) for s in read_episode(f, frames=False).states] for f in files])
+    want = hazard_nearness(np.column_stack([dist_all, light]))
     for data in (train, val):
         for i in (0, len(data) - 1):
             sample = data[i]
-            assert sample["hazard"].shape == (2,)
+            assert sample["hazard"].shape == (3,)
             assert sample["hazard"].tolist() == pytest.approx(want[data.rows[i]].tolist())
     assert desc["hazard_frames"] == {"pedestrian_in_path": int((want[:, 0] > 0).sum()),
-                                     "vehicle_in_path": int((want[:, 1] > 0).sum())}
+                                     "vehicle_in_path": int((want[:, 1] > 0).sum()),
+                                     "red_light_ahead": int((want[:, 2] > 0).sum())}
     # Read back from the cache, the same.
     again = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True)[0]
     assert np.array_equal(again.hazard, train.hazard)
     assert "hazard" not in open_recordings(recorded, (48, 144), 0.5, 0)[0][0]
+
+
+def test_the_light_target_is_the_distance_to_a_red_or_amber_stop_line_within_reach():
+    assert light_distance({"next_light_state": RED, "next_light_dist_m": 12.5}) == 12.5
+    assert light_distance({"next_light_state": YELLOW, "next_light_dist_m": -0.3}) == 0.0
+    assert light_distance({"next_light_state": RED, "next_light_dist_m": 60.0}) == HAZARD_AHEAD_M
+    assert light_distance({"next_light_state": GREEN, "next_light_dist_m": 5.0}) == HAZARD_AHEAD_M
+    assert light_distance({"next_light_state": RED, "next_light_dist_m": None}) == HAZARD_AHEAD_M
+    assert light_distance({}) == HAZARD_AHEAD_M
 
 
 def test_nearness_is_one_at_the_bumper_and_zero_out_of_reach():

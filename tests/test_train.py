@@ -255,6 +255,29 @@ def test_init_starts_from_a_checkpoints_weights(tmp_path, capsys):
     assert "no checkpoint at" in capsys.readouterr().err
 
 
+def test_train_only_fits_the_parts_named_and_leaves_the_rest_as_it_was(tmp_path, capsys):
+    """--train-only CPC after --init: CPC's weights move; every other tensor, the frozen areas'
+    batch-norm statistics and mean activations included, stays exactly the start's."""
+    first = quick_run(1)
+    train(tmp_path / "a", first, synthetic=True, progress=False)
+    start = load_checkpoint(tmp_path / "a" / "last.pt")["model"]
+    head_only = RunConfig(first.model, dataclasses.replace(first.train, train_only=("CPC",)))
+    train(tmp_path / "b", head_only, synthetic=True, progress=False, init=tmp_path / "a" / "last.pt")
+    tuned = load_checkpoint(tmp_path / "b" / "last.pt")
+    assert list(tuned["config"]["train"]["train_only"]) == ["CPC"]
+    moved = {k for k in start if not torch.equal(start[k], tuned["model"][k])}
+    assert moved and all(k.startswith("areas.CPC.") or k == "mean_CPC" for k in moved)
+    assert any(k.startswith("areas.CPC.") and k.endswith("weight") for k in moved)
+    assert any(k.startswith("areas.V2.") and "running_mean" in k for k in start)  # there were some to keep
+    # A part the model lacks, or none: one line, before any run folder is written.
+    for flag, says in (("hazard", "no such part; it has V1, V2"), (",", "names the parts to train")):
+        assert bid(["train", "--preset", "tiny", "--synthetic", "--train-only", flag,
+                    "--out", str(tmp_path / "c")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err
+    assert not (tmp_path / "c").exists()
+
+
 def test_init_starts_another_variant_from_the_areas_they_share(tmp_path, capsys):
     """The paper's ablations can start from a trained BID: the areas a variant keeps carry over,
     the ones it lacks are dropped, and its own new ones (the MT → MPC tokens) start afresh."""
@@ -540,7 +563,7 @@ def test_hazard_head_trains_on_recordings_and_driving_ignores_it(recorded, tmp_p
     with torch.no_grad():
         control = model(x, x, torch.eye(6)[[3]])
         both, near = model(x, x, torch.eye(6)[[3]], hazard=True)
-    assert torch.equal(control, both) and near.shape == (1, 2)
+    assert torch.equal(control, both) and near.shape == (1, 3)  # pedestrian, vehicle, red light
     with pytest.raises(BidError, match="no hazard head"):
         load_model(tmp_path / "plain" / "last.pt", preset="tiny")[0](x, x, torch.eye(6)[[3]], hazard=True)
     # Averaged with the run without it: the head is left out, the rest is the mean.
@@ -561,7 +584,7 @@ def test_hazard_head_trains_on_recordings_and_driving_ignores_it(recorded, tmp_p
     assert heads and all(torch.equal(kept["model"][k], tuned["model"][k]) for k in heads)
     assert torch.allclose(kept["model"][key], 0.75 * other[key] + 0.25 * tuned["model"][key])
     model, _ = load_model(tmp_path / "kept.pt", preset="tiny")
-    assert model(x, x, torch.eye(6)[[3]], hazard=True)[1].shape == (1, 2)
+    assert model(x, x, torch.eye(6)[[3]], hazard=True)[1].shape == (1, 3)
     # Heads of different shapes are not averaged: left out, or refused with --keep-heads.
     for name, horizons in (("f1.pt", [1.0]), ("f2.pt", [1.0, 2.0])):
         save_checkpoint(tmp_path / name, {**tuned, "config": {**tuned["config"], "model": {
