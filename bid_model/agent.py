@@ -57,7 +57,7 @@ def pedestrian_brake(nearness: float, speed_mps: float) -> float:
 def light_brake(nearness: float, speed_mps: float) -> float:
     """Braking (0..1) to stop LIGHT_SHORT_M short of the stop line of the red or amber light the
     hazard head sees at `nearness`. It does not hold a standing ego (moving off is the control
-    head's call): holding while the head saw a light within HOLD_M left 6 of 26 episodes
+    head's call): holding while the head saw a light within HOLD_M left 6 of the first 27 episodes
     standing ("blocked"; docs/experiments.md)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
