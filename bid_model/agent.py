@@ -36,22 +36,16 @@ def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
     return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
 
 
-def _stop_and_hold(nearness: float, speed_mps: float, short_m: float) -> float:
-    """Braking (0..1) to stop `short_m` short of what the head sees at `nearness`: none when it
-    sees nothing; full while slow with it within HOLD_M, where the expert holds."""
+def pedestrian_brake(nearness: float, speed_mps: float) -> float:
+    """Braking, as a share of full braking (0..1), to stop STOP_SHORT_M short of a pedestrian
+    the hazard head sees in the path at `nearness` (bid_model.recordings.hazard_nearness):
+    0 when it sees none; full while slow with one within HOLD_M, where the expert holds."""
     if nearness < SEEN_NEARNESS:
         return 0.0
     dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
     if speed_mps < START_MPS and dist_m < HOLD_M:
         return 1.0
-    return _stop_short(dist_m, speed_mps, short_m)
-
-
-def pedestrian_brake(nearness: float, speed_mps: float) -> float:
-    """Braking, as a share of full braking (0..1), to stop STOP_SHORT_M short of a pedestrian
-    the hazard head sees in the path at `nearness` (bid_model.recordings.hazard_nearness):
-    0 when it sees none; full while slow with one within HOLD_M, where the expert holds."""
-    return _stop_and_hold(nearness, speed_mps, STOP_SHORT_M)
+    return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
 
 
 def light_brake(nearness: float, speed_mps: float) -> float:

@@ -48,6 +48,11 @@ def grid_hw(frame_hw: tuple[int, int]) -> dict[str, tuple[int, int]]:
     return grids
 
 
+def hazard_kinds(config: ModelConfig) -> int:
+    """How many of bid_model.hazards.KINDS a model of `config` has its hazard head say (0: none)."""
+    return (2 + config.hazard_light) if config.hazard else 0
+
+
 def resize_grid_tokens(state: Mapping[str, torch.Tensor], from_hw: tuple[int, int],
                        model: nn.Module) -> dict[str, torch.Tensor]:
     """`state` (of a model with input `from_hw`) with the positional embeddings of its token
@@ -121,7 +126,7 @@ class BID(nn.Module):
 
     def hazard_kinds(self) -> int:
         """How many of bid_model.hazards.KINDS the hazard head says (0: no head)."""
-        return (2 + self.config.hazard_light) if self.config.hazard else 0
+        return hazard_kinds(self.config)
 
     def grid_hw(self) -> dict[str, tuple[int, int]]:
         """(rows, cols) of the feature grid of each perception area."""

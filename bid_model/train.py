@@ -58,7 +58,7 @@ from bid_model.config import (
 )
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
 from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M, SEEN_NEARNESS
-from bid_model.model import BID, SPEED_SCALE_MPS, resize_grid_tokens
+from bid_model.model import BID, SPEED_SCALE_MPS, hazard_kinds, resize_grid_tokens
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
 from bid_sim.world import DT_S
@@ -629,7 +629,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     if tc.lambda_forecast > 0 and tuple(getattr(first.get("future_speed"), "shape", ())) != (len(config.model.forecast_s),):
         raise BidError(f"--forecast needs dataset items with 'future_speed', {len(config.model.forecast_s)} speeds "
                        "ahead (see the contract in bid_model/data.py)")
-    kinds = (2 + config.model.hazard_light) if config.model.hazard else 0
+    kinds = hazard_kinds(config.model)
     if tc.lambda_hazard > 0 and getattr(first.get("hazard"), "shape", (0,))[0] < kinds:
         raise BidError(f"--hazard needs dataset items with 'hazard', {kinds} nearnesses: of a pedestrian and a "
                        "vehicle in the path and a red light ahead (bid_model.recordings.hazard_nearness)")
