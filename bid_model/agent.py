@@ -18,7 +18,7 @@ from bid_model.checkpoint import load_model
 from bid_model.data import command_one_hot, prepare_frame
 from bid_model.hazards import HAZARD_AHEAD_M, SEEN_NEARNESS
 from bid_sim.agents import EpisodeInfo, Observation
-from bid_sim.ego import Control, EgoParams
+from bid_sim.ego import DT_S, Control, EgoParams
 from bid_sim.errors import BidError
 
 STOP_SHORT_M = 2.0  # how far short of a seen pedestrian the ego brakes to stop
@@ -28,6 +28,13 @@ HEADWAY_S = 1.0  # a vehicle in the path closer than this many seconds at the eg
 MIN_GAP_M = 4.0  # ...plus this, front bumper to its back, is braked for
 VEHICLE_SHORT_M = 1.0  # how far short of it the ego would stop were it standing
 LIGHT_SHORT_M = 1.0  # how far short of a red light's stop line the ego stops (as the expert)
+# A vehicle or light brake asking for less than this share of full braking (0.8 m/s²) asks
+# nothing: the ego can still stop short by braking later. Without it a creeping ego was held
+# at any seen stop line or car, v²/2d being above 0 for any v > 0 (docs/experiments.md).
+BIND_SHARE = 0.1
+STILL_MPS = 0.1  # slower than this is standing (bid_sim.infractions.BLOCKED_SPEED_MPS)
+MOVE_OFF_ACCEL = 0.5  # the accel `move_off` gives a standing ego (the expert's is 0.67)
+CLEAR_M = 8.0  # move_off waits while a pedestrian or vehicle is seen nearer than this
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
@@ -48,14 +55,18 @@ def pedestrian_brake(nearness: float, speed_mps: float) -> float:
     return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
 
 
+def _binding(need: float) -> float:
+    return need if need >= BIND_SHARE else 0.0
+
+
 def light_brake(nearness: float, speed_mps: float) -> float:
     """Braking (0..1) to stop LIGHT_SHORT_M short of the stop line of the red or amber light the
-    hazard head sees at `nearness`. It does not hold a standing ego (moving off is the control
-    head's call): holding while the head saw a light within HOLD_M left 6 of the first 27 episodes
-    standing ("blocked"; docs/experiments.md)."""
+    hazard head sees at `nearness`, once that takes BIND_SHARE or more. It does not hold a
+    standing ego (moving off is the control head's call): holding while the head saw a light
+    within HOLD_M left 6 of the first 27 episodes standing ("blocked"; docs/experiments.md)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
-    return _stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, LIGHT_SHORT_M)
+    return _binding(_stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, LIGHT_SHORT_M))
 
 
 def vehicle_brake(nearness: float, speed_mps: float) -> float:
@@ -64,13 +75,21 @@ def vehicle_brake(nearness: float, speed_mps: float) -> float:
     MIN_GAP_M (a car ahead moving off, or followed at a safe gap), else as hard as stopping
     VEHICLE_SHORT_M short of it would take, were it standing. The head gives no speed of its
     own, so a slower car followed too closely is braked for as a standing one, and the ego
-    falls back to the headway."""
+    falls back to the headway. Below BIND_SHARE it asks nothing."""
     if nearness < SEEN_NEARNESS:
         return 0.0
     dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
     if dist_m > speed_mps * HEADWAY_S + MIN_GAP_M:
         return 0.0
-    return _stop_short(dist_m, speed_mps, VEHICLE_SHORT_M)
+    return _binding(_stop_short(dist_m, speed_mps, VEHICLE_SHORT_M))
+
+
+def clear_to_move_off(near: tuple[float, ...]) -> bool:
+    """Whether the hazard head's (pedestrian, vehicle, red light) nearness leaves a standing ego
+    free to move off: nothing seen within CLEAR_M. A light farther off is the light brake's (it
+    stops the ego short of it); on green the light output wanders up to 0.3 (17 m), which, had
+    any seen light counted, kept restarting the wait (route 10, seed 2: blocked)."""
+    return max(near[:3]) < 1.0 - CLEAR_M / HAZARD_AHEAD_M
 
 
 class BIDAgent:
@@ -87,13 +106,19 @@ class BIDAgent:
     vehicle_brake: likewise by `vehicle_brake` for the vehicle it sees there.
     light_brake: likewise by `light_brake` for the red light it sees ahead (a head trained
     with the red-light output, model.hazard_light).
+    move_off: seconds; once the ego has stood this long with the head seeing nothing within
+    CLEAR_M (`clear_to_move_off`; a light turning green starts the count), accelerate at
+    least at MOVE_OFF_ACCEL until START_MPS or until the head sees something (0: standing and
+    moving off are the control head's call). It answers a control head that stands where
+    nothing is in the way (docs/experiments.md).
     """
 
     uses_camera = True
 
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
-                 hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0):
+                 hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
+                 move_off: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -103,26 +128,32 @@ class BIDAgent:
                            "or drop forecast_brake")
         self.forecast_brake = forecast_brake
         for name, gain in (("hazard_brake", hazard_brake), ("vehicle_brake", vehicle_brake),
-                           ("light_brake", light_brake)):
+                           ("light_brake", light_brake), ("move_off", move_off)):
             if not gain >= 0:
-                raise BidError(f"{name} is a gain, 0 or more; got {gain}")
+                raise BidError(f"{name} must be 0 or more; got {gain}")
             if gain > 0 and not self.config.model.hazard:
                 raise BidError(f"{checkpoint} has no hazard head to brake by; train it with --hazard "
                                f"or drop {name}")
-        if light_brake > 0 and not self.config.model.hazard_light:
-            raise BidError(f"{checkpoint}'s hazard head has no red-light output (trained before it existed); "
-                           "train one with --hazard, or drop light_brake")
+        for name, value in (("light_brake", light_brake), ("move_off", move_off)):
+            if value > 0 and not self.config.model.hazard_light:
+                raise BidError(f"{checkpoint}'s hazard head has no red-light output (trained before it existed); "
+                               f"train one with --hazard, or drop {name}")
         self.hazard_brake, self.vehicle_brake, self.light_brake = hazard_brake, vehicle_brake, light_brake
+        self.move_off_steps = round(move_off / DT_S) if move_off > 0 else 0
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
         self.gradcam_area = gradcam_area
         self._prev: torch.Tensor | None = None
         self._inputs: tuple | None = None
+        self._still_steps = 0  # consecutive steps standing, for move_off
+        self._moving_off = False
 
     def reset(self, info: EpisodeInfo) -> None:
         self._prev = None
         self._inputs = None
+        self._still_steps = 0
+        self._moving_off = False
 
     @torch.inference_mode()
     def act(self, obs: Observation) -> Control:
@@ -135,7 +166,8 @@ class BIDAgent:
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
         by_forecast = self.forecast_brake > 0
-        by_hazard = self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
+        by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
+                     or self.move_off_steps > 0)
         if not (by_forecast or by_hazard):
             out = self.model(frame, prev, cmd, speed)[0]
             return Control(steer=float(out[0]), accel=float(out[1]))
@@ -150,12 +182,24 @@ class BIDAgent:
                 accel = min(accel, -self.forecast_brake * need)
         if by_hazard:
             near = extra.pop(0)[0]
+            if self.move_off_steps:
+                accel = self._move_off(accel, v, tuple(float(x) for x in near))
             need = max(self.hazard_brake * pedestrian_brake(float(near[0]), v),
                        self.vehicle_brake * vehicle_brake(float(near[1]), v),
                        self.light_brake * light_brake(float(near[2]), v) if self.light_brake > 0 else 0.0)
             if need > 0:
                 accel = min(accel, -need)
         return Control(steer=float(control[0, 0]), accel=max(accel, -1.0))
+
+    def _move_off(self, accel: float, speed_mps: float, near: tuple[float, ...]) -> float:
+        """`accel`, raised to MOVE_OFF_ACCEL while moving off (see `move_off`); the brakes apply after."""
+        clear = clear_to_move_off(near)
+        self._still_steps = self._still_steps + 1 if speed_mps < STILL_MPS and clear else 0
+        if self._still_steps >= self.move_off_steps and clear:
+            self._moving_off = True
+        if self._moving_off and (not clear or speed_mps >= START_MPS):
+            self._moving_off = False
+        return max(accel, MOVE_OFF_ACCEL) if self._moving_off else accel
 
     def overlay(self, frame: np.ndarray) -> np.ndarray | None:
         """The last step's Grad-CAM of steer over the three cameras (for evaluation videos)."""

@@ -96,7 +96,7 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
 AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
              "hazard": (False, "hazard_head.", "lambda_hazard")}
 # Fields that shape a head beside its own (→ their value without it): heads alike agree on them too.
-HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False}}
+HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False, "hazard_attend": False}}
 
 
 def average_checkpoints(paths: list[str | Path], out: str | Path,

@@ -50,6 +50,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard, weigh each frame with a pedestrian (vehicle) in the path W times "
                         "in the head's pedestrian (vehicle) loss, so that a rare kind is not fitted as "
                         "'none' (1 by default)")
+    p.add_argument("--hazard-attend", action="store_true", default=None,
+                   help="with --hazard, a head whose per-kind queries attend over V2's and V4's feature "
+                        "grids and MPC's tokens, rather than one reading MPC's mean (bid_model/model.py)")
     p.add_argument("--frame-hw", default=None, metavar="ROWSxCOLS",
                    help="the network's input size, e.g. 96x288 (the preset's by default: small 64x192); "
                         "with --init from another size the token grids' positional embeddings are resized")

@@ -26,7 +26,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
-INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light"}
+INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -76,6 +76,9 @@ class ModelConfig:
     # With it, a third output: how near the stop line of a red or amber light on the route is
     # (bid_model.hazards.light_distance). Every new --hazard head has it; older ones do not.
     hazard_light: bool = False
+    # The head attends over V2's and V4's grids and MPC's tokens rather than reading MPC's mean
+    # (model.AttendingHazardHead): a small pedestrian is one cell of V2's grid.
+    hazard_attend: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:

@@ -53,6 +53,35 @@ def hazard_kinds(config: ModelConfig) -> int:
     return (2 + config.hazard_light) if config.hazard else 0
 
 
+class AttendingHazardHead(nn.Module):
+    """The hazard head of config.hazard_attend: a learned query per kind attends, with `heads`
+    heads, over V2's and V4's feature grids (projected to the token width, with a positional
+    embedding each) and MPC's tokens; an MLP reads each kind's pooled vector. A person 10 m off
+    is 2–3 pixels of a 64×192 frame: a cell of V2's grid, averaged away in MPC's 26 tokens."""
+
+    def __init__(self, grids: Mapping[str, tuple[int, int, int]], width: int, hidden: int, kinds: int,
+                 heads: int = 4):
+        super().__init__()
+        self.levels = tuple(grids)
+        self.project = nn.ModuleDict({name: nn.Linear(ch, width) for name, (ch, _, _) in grids.items()})
+        self.position = nn.ParameterDict({name: nn.Parameter(torch.randn(h * w, width) * 0.02)
+                                          for name, (_, h, w) in grids.items()})
+        self.query = nn.Parameter(torch.randn(kinds, width) * 0.02)
+        self.attend = nn.MultiheadAttention(width, heads, batch_first=True)
+        self.hidden = nn.Linear(width, hidden)
+        self.out_weight = nn.Parameter(torch.zeros(kinds, hidden))
+        self.out_bias = nn.Parameter(torch.zeros(kinds))
+
+    def forward(self, features: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        tokens = [self.project[name](features[name].flatten(2).transpose(1, 2)) + self.position[name]
+                  for name in self.levels]
+        tokens = torch.cat([*tokens, features["MPC"]], dim=1)
+        query = self.query.to(tokens.dtype).expand(tokens.shape[0], -1, -1)
+        pooled, _ = self.attend(query, tokens, tokens, need_weights=False)  # (B, kinds, width)
+        h = torch.relu(self.hidden(pooled))
+        return (h * self.out_weight).sum(-1) + self.out_bias
+
+
 def resize_grid_tokens(state: Mapping[str, torch.Tensor], from_hw: tuple[int, int],
                        model: nn.Module) -> dict[str, torch.Tensor]:
     """`state` (of a model with input `from_hw`) with the positional embeddings of its token
@@ -113,9 +142,14 @@ class BID(nn.Module):
                               if c.forecast_s else None)
         # Auxiliary hazard head: (pedestrian, vehicle[, red light]) nearness in the path, 1 −
         # distance / HAZARD_AHEAD_M (0: none within it); not an area (no lesions).
-        self.hazard_head = (nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
-                                          nn.Linear(c.cpc_hidden[1], self.hazard_kinds()))
-                            if c.hazard else None)
+        # With config.hazard_attend it attends over V2's and V4's grids as well (AttendingHazardHead).
+        self.hazard_head: nn.Module | None = None
+        if c.hazard and c.hazard_attend:
+            grids = {name: (w[i], *self.grid_hw()[name]) for i, name in ((1, "V2"), (2, "V4"))}
+            self.hazard_head = AttendingHazardHead(grids, d, c.cpc_hidden[1], self.hazard_kinds())
+        elif c.hazard:
+            self.hazard_head = nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
+                                             nn.Linear(c.cpc_hidden[1], self.hazard_kinds()))
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
@@ -242,9 +276,12 @@ class BID(nn.Module):
 
     def forward_hazard(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
         """(batch, hazard_kinds()): nearness of the nearest (pedestrian, vehicle) in the path and,
-        with config.hazard_light, of a red light's stop line, from MPC's tokens."""
+        with config.hazard_light, of a red light's stop line, from MPC's tokens (and with
+        config.hazard_attend from V2's and V4's grids too)."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
+        if self.config.hazard_attend:
+            return self.hazard_head(features)
         return self.hazard_head(features["MPC"].mean(dim=1))
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,

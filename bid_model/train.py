@@ -69,7 +69,7 @@ DEFAULT_DATA = Path("data/town01")
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
                   "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "val_mae_hazard_m", "val_ped_seen_near", "val_ped_seen_none",
-                  "val_light_seen_near", "val_light_seen_none", "lr", "samples_per_s", "time_s")
+                  "val_ped_auc", "val_light_seen_near", "val_light_seen_none", "lr", "samples_per_s", "time_s")
 
 
 # --- pieces ----------------------------------------------------------------------------------
@@ -155,8 +155,25 @@ def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict
     def share(k: int, rows: torch.Tensor) -> float | None:
         return float(seen[rows[:, k], k].float().mean()) if rows[:, k].any() else None
 
-    return {kind: {"seen_near": share(k, near), "seen_none": share(k, none)}
+    def auc(k: int) -> float | None:
+        if not (near[:, k].any() and none[:, k].any()):
+            return None
+        return ranking_auc(pred[near[:, k], k].float().numpy(), pred[none[:, k], k].float().numpy())
+
+    return {kind: {"seen_near": share(k, near), "seen_none": share(k, none), "auc": auc(k)}
             for k, kind in enumerate(KINDS[:pred.shape[1]])}
+
+
+def ranking_auc(positive: np.ndarray, negative: np.ndarray) -> float:
+    """The chance that a positive's score outranks a negative's, ties counting half (the area
+    under the ROC curve, by the Mann–Whitney U statistic): whether a head ranks frames with a
+    hazard above those without, whatever threshold it is read at."""
+    scores = np.concatenate([positive, negative])
+    _, inverse, counts = np.unique(scores, return_inverse=True, return_counts=True)
+    below = np.cumsum(counts) - counts  # scores lower than each distinct one
+    ranks = (below + (counts + 1) / 2)[inverse]  # 1-based, ties averaged
+    n1, n0 = len(positive), len(negative)
+    return float((ranks[:n1].sum() - n1 * (n1 + 1) / 2) / (n1 * n0))
 
 
 def _split_outputs(out: torch.Tensor | tuple[torch.Tensor, ...], tc: TrainConfig
@@ -731,7 +748,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         detection = val["val_hazard_detection"] if val else {}
         ped, light = detection.get("pedestrian", {}), detection.get("red_light", {})
         row.update(val_ped_seen_near=ped.get("seen_near"), val_ped_seen_none=ped.get("seen_none"),
-                   val_light_seen_near=light.get("seen_near"), val_light_seen_none=light.get("seen_none"))
+                   val_ped_auc=ped.get("auc"), val_light_seen_near=light.get("seen_near"), val_light_seen_none=light.get("seen_none"))
         row.update(lr=lr, samples_per_s=samples / train_s, time_s=time.perf_counter() - t0)
         history.append(row)
         score = row["val_loss"] if val else row["train_loss"]
@@ -756,8 +773,9 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if val and val["val_mae_hazard_m"]:
             log.info("hazard distance MAE, pedestrian/vehicle: %s m", "/".join(f"{e:.2f}" for e in val["val_mae_hazard_m"]))
             for kind, d in val["val_hazard_detection"].items():
-                log.info("%s in the path: seen in %s of the frames with one within %g m, in %s of those with none",
-                         kind, _percent(d["seen_near"]), NEAR_M, _percent(d["seen_none"]))
+                log.info("%s in the path: seen in %s of the frames with one within %g m, in %s of those "
+                         "with none; AUC %s", kind, _percent(d["seen_near"]), NEAR_M, _percent(d["seen_none"]),
+                         "-" if d["auc"] is None else f"{d['auc']:.3f}")
         if dist.world > 1:
             torch.distributed.barrier()
     return history
@@ -786,7 +804,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
-             "--train-only": args.train_only}
+             "--hazard-attend": args.hazard_attend, "--train-only": args.train_only}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -849,6 +867,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard:
             raise BidError("--hazard-pos-weight weighs the hazard head's loss: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, hazard_pos_weight=args.hazard_pos_weight)
+    if args.hazard_attend:
+        if not model.hazard:
+            raise BidError("--hazard-attend shapes the hazard head: add --hazard WEIGHT")
+        model = dataclasses.replace(model, hazard_attend=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

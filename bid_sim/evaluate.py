@@ -244,6 +244,10 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
         diff = [k for k in config if k != "software" and old.get(k) != config[k]]
+        if diff == ["seeds"] and isinstance(old.get("seeds"), int) and config["seeds"] > old["seeds"]:
+            # More seeds of the same run: an episode's key names its seed, so those done stay valid.
+            cfg_path.write_text(json.dumps(config, indent=1))
+            diff = []
         if diff:
             changed = " (the checkpoint file changed since these results were written)" \
                 if "checkpoint_sha256" in diff else ""

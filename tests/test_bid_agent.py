@@ -174,6 +174,17 @@ def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
     assert vehicle_brake(0.9, 0.0) == 0.0  # standing behind it: nothing to brake
     assert vehicle_brake(0.9, 3.0) == pytest.approx(9 / 3 / 8)  # 2.5 m off at 3 m/s
     assert vehicle_brake(1.0, 8.0) == 1.0
+    assert vehicle_brake(0.9, 1.0) == 0.0  # 2.5 m off at 1 m/s: 1/3/8 is below BIND_SHARE, close up
+
+
+def test_clear_to_move_off_needs_nothing_seen_within_8_m():
+    from bid_model.agent import clear_to_move_off
+
+    assert clear_to_move_off((0.0, 0.0, 0.0))
+    assert clear_to_move_off((0.6, 0.6, 0.6))  # a pedestrian, a car and a red light 10 m off
+    assert not clear_to_move_off((0.7, 0.0, 0.0))  # a pedestrian 7.5 m off
+    assert not clear_to_move_off((0.0, 0.7, 0.0))
+    assert not clear_to_move_off((0.0, 0.0, 0.9))  # at the stop line of a red light
 
 
 def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, recorded, tmp_path, capsys):
@@ -184,7 +195,7 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     import numpy as np
     import torch
 
-    from bid_model.agent import light_brake, pedestrian_brake, vehicle_brake
+    from bid_model.agent import MOVE_OFF_ACCEL, light_brake, pedestrian_brake, vehicle_brake
     from bid_model.checkpoint import load_checkpoint, save_checkpoint
     from bid_model.config import RunConfig
     from bid_sim.agents import Observation
@@ -216,7 +227,7 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     # A red light's stop line 5 m ahead (nearness 0.8) is braked for only with light_brake, to
     # stop 1 m short; a standing ego is not held (moving off is the control head's call).
     assert light_brake(0.0, 6.0) == 0.0 and light_brake(0.8, 6.0) == pytest.approx(36 / 8 / EgoParams.max_brake_mps2)
-    assert light_brake(0.8, 0.0) == 0.0 and light_brake(0.8, 0.5) < 0.01
+    assert light_brake(0.8, 0.0) == 0.0 and light_brake(0.8, 0.5) == 0.0  # creeping up: below BIND_SHARE
     lights = BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0)
     for agent in (lights, both):
         with torch.no_grad():
@@ -225,18 +236,40 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         agent.reset(None)
     assert lights.act(obs).accel == pytest.approx(min(free, -light_brake(0.8, 6.0)), abs=1e-5)
     assert both.act(obs).accel == pytest.approx(free, abs=1e-5)
+    # move_off: a control head that stands (accel forced to about -0.76) is overruled once the
+    # ego has stood 0.3 s (3 steps) with the head seeing nothing, and not while it sees a light.
+    still = Observation(frame, frame, 4, 0.0, None)
+    going = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.3)
+    with torch.no_grad():
+        going.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, -100.0]))
+        going.model.areas["CPC"].head[-1].weight.zero_()
+    head = going.model.hazard_head[-1]
+    for bias in ([0.0, 0.0, 0.0], [0.0, 0.0, 0.9], [0.0, 0.0, 0.0]):
+        with torch.no_grad():
+            head.weight.zero_()
+            head.bias.copy_(torch.tensor(bias))
+        got = [going.act(still).accel for _ in range(3)]
+        if bias[2]:  # a red light seen: it stands as the control head says
+            assert got == pytest.approx([-1.0] * 3, abs=1e-5)
+        else:  # clear: the third standing step moves off (the count starts again after the light)
+            assert got == pytest.approx([-1.0, -1.0, MOVE_OFF_ACCEL], abs=1e-5)
+    assert going.act(Observation(frame, frame, 4, 1.0, None)).accel == pytest.approx(MOVE_OFF_ACCEL)
+    assert going.act(Observation(frame, frame, 4, 2.5, None)).accel == pytest.approx(-1.0, abs=1e-5)  # moved off
+    going.reset(None)
+    assert going.act(still).accel == pytest.approx(-1.0, abs=1e-5)
     # A head trained before the red-light output existed: light_brake is refused, the rest drives.
     old = load_checkpoint(tmp_path / "hz" / "last.pt")
     old["config"]["model"]["hazard_light"] = False
     old["model"] = {k: (v[:2] if k.startswith("hazard_head.2.") else v) for k, v in old["model"].items()}
     save_checkpoint(tmp_path / "old.pt", old)
     BIDAgent(tmp_path / "old.pt", vehicle_brake=1.0).act(obs)
-    with pytest.raises(BidError, match="no red-light output"):
-        BIDAgent(tmp_path / "old.pt", light_brake=1.0)
-    for option in ("hazard_brake", "vehicle_brake", "light_brake"):
+    for option in ("light_brake", "move_off"):
+        with pytest.raises(BidError, match="no red-light output"):
+            BIDAgent(tmp_path / "old.pt", **{option: 1.0})
+    for option in ("hazard_brake", "vehicle_brake", "light_brake", "move_off"):
         with pytest.raises(BidError, match="no hazard head"):
             BIDAgent(checkpoint, **{option: 1.0})
-    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake"):
+    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off"):
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 

@@ -2,6 +2,7 @@
 name or module:Class, bad input."""
 
 import json
+import shutil
 
 import pytest
 
@@ -83,11 +84,26 @@ def test_parallel_and_resumed_runs_match_serial(serial, tmp_path):
     assert len(read_lines(resumed / "episodes.jsonl")) == 2
 
 
-def test_other_configuration_is_refused(serial, capsys):
+def test_other_configuration_is_refused_but_more_seeds_extend_a_run(serial, tmp_path, capsys):
     out, _ = serial
-    assert main(["evaluate", "--town", "02", "--density", "none", "--weathers", "WetSunset", "--seeds", "2",
-                 "--routes", "0,3", "--agent", "bid_sim.agents:LaneFollower", "--out", str(out)]) == 2
+    more = tmp_path / "more"
+    shutil.copytree(out, more)
+
+    def run(folder, seeds: str, routes: str = "0,3") -> int:
+        return main(["evaluate", "--town", "02", "--density", "none", "--weathers", "WetSunset", "--routes", routes,
+                     "--agent", "bid_sim.agents:LaneFollower", "--workers", "1", "--json", "--seeds", seeds,
+                     "--out", str(folder)])
+
+    assert run(more, "2") == 0
+    lines = (more / "episodes.jsonl").read_text().splitlines()
+    assert lines[:2] == (out / "episodes.jsonl").read_text().splitlines()  # seed 0's, kept as they were
+    assert [json.loads(ln)["seed"] for ln in lines[2:]] == [1, 1]
+    assert json.loads((more / "config.json").read_text())["seeds"] == 2
+    capsys.readouterr()
+    assert run(more, "1") == 2  # fewer seeds than done: refused
     assert "another configuration (seeds differ)" in capsys.readouterr().err
+    assert run(out, "2", routes="0") == 2  # more seeds, but another change too
+    assert "another configuration (seeds, routes differ)" in capsys.readouterr().err
 
 
 def test_compare(serial, tmp_path, capsys):

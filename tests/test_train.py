@@ -605,8 +605,20 @@ def test_hazard_detection_counts_what_the_head_sees_near_and_where_there_is_noth
     target = torch.tensor([[0.8, 0.0], [0.8, 0.0], [0.5, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
     pred = torch.tensor([[0.7, 0.0], [0.1, 0.3], [0.0, 0.0], [0.25, 0.0], [0.0, 0.0], [0.0, 0.0]])
     d = hazard_detection(pred, target)
-    assert d["pedestrian"] == {"seen_near": 0.5, "seen_none": pytest.approx(1 / 3)}
-    assert d["vehicle"] == {"seen_near": None, "seen_none": pytest.approx(1 / 6)}
+    # AUC: of the 2 × 3 (near, none) pairs, 0.7 outranks all three nones, 0.1 two and ties none.
+    assert d["pedestrian"] == {"seen_near": 0.5, "seen_none": pytest.approx(1 / 3), "auc": pytest.approx(5 / 6)}
+    assert d["vehicle"] == {"seen_near": None, "seen_none": pytest.approx(1 / 6), "auc": None}
+
+
+def test_ranking_auc_counts_ties_half():
+    import numpy as np
+
+    from bid_model.train import ranking_auc
+
+    assert ranking_auc(np.array([0.9, 0.8]), np.array([0.1, 0.2, 0.3])) == 1.0
+    assert ranking_auc(np.array([0.1]), np.array([0.9])) == 0.0
+    assert ranking_auc(np.zeros(4), np.zeros(7)) == 0.5
+    assert ranking_auc(np.array([0.0, 0.5]), np.array([0.0, 0.0])) == pytest.approx(0.75)
 
 
 def test_hazard_pos_weight_makes_a_rare_hazard_worth_reporting():
@@ -656,3 +668,31 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     half = RunConfig(dataclasses.replace(half.model, hazard=True), half.train)
     with pytest.raises(BidError, match="--hazard WEIGHT"):
         train(tmp_path / "half", half, synthetic=True, progress=False)
+
+
+def test_attending_hazard_head_fits_alone_on_a_trained_trunk_and_reads_v2(recorded, tmp_path, capsys):
+    """--hazard --hazard-attend --train-only hazard from a run without a head: only the new head
+    moves; it says (pedestrian, vehicle, red light) and reads V2's grid, not MPC's mean alone."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--out", str(tmp_path / "plain")]) == 0
+    assert bid([*base, "--init", str(tmp_path / "plain" / "last.pt"), "--hazard", "1", "--hazard-attend",
+                "--train-only", "hazard", "--out", str(tmp_path / "hz")]) == 0
+    start = load_checkpoint(tmp_path / "plain" / "last.pt")["model"]
+    tuned = load_checkpoint(tmp_path / "hz" / "last.pt")
+    assert tuned["config"]["model"]["hazard_attend"]
+    assert all(torch.equal(v, tuned["model"][k]) for k, v in start.items())
+    assert any(k.startswith("hazard_head.project.V2") for k in tuned["model"])
+    model, _ = load_model(tmp_path / "hz" / "last.pt", preset="tiny")
+    x = torch.zeros(1, 3, 32, 96, dtype=torch.uint8)
+    feats = model.forward_features(x, x, torch.eye(6)[[3]])
+    feats["V2"] = feats["V2"].detach().requires_grad_(True)
+    with torch.no_grad():  # every hidden unit read, so that the check is of the wiring alone
+        model.hazard_head.out_weight.fill_(1.0)
+        model.hazard_head.hidden.bias.fill_(1.0)
+    near = model.forward_hazard(feats)
+    assert near.shape == (1, 3)
+    near.sum().backward()
+    assert feats["V2"].grad.abs().sum() > 0
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--hazard-attend", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "add --hazard WEIGHT" in err and "\n" not in err
