@@ -34,7 +34,7 @@ LIGHT_SHORT_M = 1.0  # how far short of a red light's stop line the ego stops (a
 BIND_SHARE = 0.1
 STILL_MPS = 0.1  # slower than this is standing (bid_sim.infractions.BLOCKED_SPEED_MPS)
 MOVE_OFF_ACCEL = 0.5  # the accel `move_off` gives a standing ego (the expert's is 0.67)
-CLEAR_M = 8.0  # move_off waits while a pedestrian or vehicle is seen nearer than this
+CLEAR_M = 8.0  # move_off waits while a pedestrian, vehicle or red light is seen nearer than this
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
@@ -146,7 +146,7 @@ class BIDAgent:
         self.gradcam_area = gradcam_area
         self._prev: torch.Tensor | None = None
         self._inputs: tuple | None = None
-        self._still_steps = 0  # consecutive steps standing, for move_off
+        self._still_steps = 0  # consecutive steps standing with the head seeing it clear, for move_off
         self._moving_off = False
 
     def reset(self, info: EpisodeInfo) -> None:
