@@ -19,6 +19,12 @@ AGENT ?= bid
 # The BID shipped in the repository (`small` preset, trained on CPU; its card is beside it).
 SHIPPED := checkpoints/bid_small.pt
 CHECKPOINT ?= $(SHIPPED)
+# How the shipped BID drives: its hazard head (fitted to the frozen network) brakes for the
+# vehicle and the red light it sees in the path, and moves a standing ego off once it has
+# seen nothing within 8 m for 8 s (README "Results"). Another CHECKPOINT drives on its
+# control head alone unless DRIVE gives flags; `make evaluate DRIVE=` so drives the shipped one.
+SHIPPED_DRIVE := --vehicle-brake 1 --light-brake 1 --move-off 8
+DRIVE ?= $(if $(filter $(SHIPPED),$(CHECKPOINT)),$(SHIPPED_DRIVE))
 WEATHERS ?= test
 SEEDS ?= 3
 
@@ -54,7 +60,7 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	rm -rf results/demo
 	$(BID) evaluate --town 02 --density normal --weathers WetSunset --seeds 1 --routes 0,1,2,3,4,5 \
-		--agent bid --checkpoint $(SHIPPED) --workers $(WORKERS) --video 1 --out results/demo
+		--agent bid --checkpoint $(SHIPPED) $(SHIPPED_DRIVE) --workers $(WORKERS) --video 1 --out results/demo
 	@echo "video with Grad-CAM: $$(ls results/demo/videos/*.mp4)"
 
 test: $(STAMP)
@@ -74,7 +80,7 @@ train: $(STAMP)
 # The closed-loop benchmark; AGENT=expert needs no checkpoint.
 evaluate: $(STAMP)
 	$(BID) evaluate --town $(TOWN) --density $(DENSITY) --weathers $(WEATHERS) --seeds $(SEEDS) \
-		--agent $(AGENT) $(if $(filter bid,$(AGENT)),--checkpoint $(CHECKPOINT)) --workers $(WORKERS) \
+		--agent $(AGENT) $(if $(filter bid,$(AGENT)),--checkpoint $(CHECKPOINT) $(DRIVE)) --workers $(WORKERS) \
 		--out results/town$(TOWN)_$(AGENT)_$(DENSITY)
 
 # Demonstrations: the expert over random routes, four train weathers, three densities.
@@ -100,9 +106,12 @@ dagger: $(STAMP)
 # data/town01_late (demonstrations, a DAgger round and a corner round, all driven or
 # labelled by the corner round's BID) on which it is fine-tuned one epoch with accel's
 # 0.3-quantile as the target, and the equal-weight average of the corner round and that
-# (runs/reproduce_soup: what is shipped), the Town02 NoCrash for the expert and the new
-# BID, and the result tables. The shipped checkpoint is left alone: copy
-# runs/reproduce_soup/last.pt over it with `bid export` only if it drives better.
+# (runs/reproduce_soup: the shipped network), a hazard head fitted to it with the network
+# frozen, on fresh recordings (data/town01_hz: demonstrations and a DAgger round it drove;
+# runs/reproduce_hazard: what is shipped), the Town02 NoCrash for the expert and for the new
+# BID driving as the shipped one does (SHIPPED_DRIVE), and the result tables. The shipped
+# checkpoint is left alone: copy runs/reproduce_hazard/last.pt over it with `bid export`
+# only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
@@ -130,10 +139,18 @@ reproduce: $(STAMP)
 		--lr 1e-4 --augment 0.8 --hard-repeat 3 --forecast 0.5 --accel-quantile 0.3)
 	$(if $(wildcard runs/reproduce_soup/last.pt),,$(BID) average runs/reproduce_corners/last.pt \
 		runs/reproduce_q30/last.pt --out runs/reproduce_soup/last.pt)
+	$(BID) record --town 01 --episodes 48 --perturb $(PERTURB) --seed 40 --workers $(WORKERS) \
+		--out data/town01_hz/expert40
+	$(BID) record --town 01 --episodes 96 --seed 41 --dagger runs/reproduce_soup/last.pt \
+		--workers $(WORKERS) --out data/town01_hz/dagger41
+	$(BID) train --preset small --data data/town01_hz --name reproduce_hazard \
+		$(if $(wildcard runs/reproduce_hazard/last.pt),--resume,--init runs/reproduce_soup/last.pt --epochs 1 \
+		--lr 1e-3 --augment 0.8 --forecast 0.5 --hazard 1 --hazard-pos-weight 2 --train-only hazard)
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_soup/last.pt --workers $(WORKERS) --out results/reproduce/town02_bid_small
+		--checkpoint runs/reproduce_hazard/last.pt $(SHIPPED_DRIVE) --workers $(WORKERS) \
+		--out results/reproduce/town02_bid_small
 	$(BID) lesion --checkpoint runs/reproduce_soup/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal
 	$(BID) tables results/reproduce --out results/reproduce/tables.md

@@ -2,6 +2,7 @@
 through SUMO from rendered frames; loading by name; bad checkpoints."""
 
 import json
+from pathlib import Path
 
 import pytest
 from render_scenes import street_scene
@@ -185,6 +186,33 @@ def test_clear_to_move_off_needs_nothing_seen_within_8_m():
     assert not clear_to_move_off((0.7, 0.0, 0.0))  # a pedestrian 7.5 m off
     assert not clear_to_move_off((0.0, 0.7, 0.0))
     assert not clear_to_move_off((0.0, 0.0, 0.9))  # at the stop line of a red light
+
+
+def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
+    """`make demo` and `make evaluate` drive checkpoints/bid_small.pt with the Makefile's
+    SHIPPED_DRIVE: its hazard head must have the three outputs those brakes and move-off read,
+    and reading it leaves the control head's output as it is."""
+    import torch
+
+    root = Path(__file__).resolve().parents[1]
+    makefile = (root / "Makefile").read_text().splitlines()
+    flags = next(ln for ln in makefile if ln.startswith("SHIPPED_DRIVE :=")).split(":=", 1)[1].split()
+    options = {flag.removeprefix("--").replace("-", "_"): float(value)
+               for flag, value in zip(flags[::2], flags[1::2], strict=True)}
+    assert set(options) == {"vehicle_brake", "light_brake", "move_off"}
+    shipped = root / "checkpoints" / "bid_small.pt"
+    agent = BIDAgent(shipped, **options)
+    assert agent.vehicle_brake == agent.light_brake == 1.0 and agent.move_off_steps == 80
+    plain = BIDAgent(shipped)
+    frame, prev = torch.randint(0, 256, (2, 1, 3, *plain.hw), dtype=torch.uint8,
+                                generator=torch.Generator().manual_seed(0))
+    cmd = torch.zeros(1, 6)
+    cmd[0, 3] = 1.0
+    speed = torch.tensor([3.0])
+    with torch.inference_mode():
+        control, near = agent.model(frame, prev, cmd, speed, hazard=True)
+        assert torch.equal(control, plain.model(frame, prev, cmd, speed))
+    assert near.shape == (1, 3)  # pedestrian, vehicle, red light
 
 
 def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, recorded, tmp_path, capsys):
