@@ -3,6 +3,7 @@
 Perception (visual cortex): V1 → ventral stream V2 → V4 → IT (CORnet-S-style recurrent
 areas, appearance embedding E_V) and dorsal stream MT/MST (dynamic filters on motion, motion
 embedding E_S). Decision (prefrontal cortex): VPC, DPC, OFC merged by MPC, read out by CPC.
+Beside the cortex, optionally, SC (superior colliculus): pedestrians and vehicles in the path.
 Grids are (batch, channels, rows, cols); token sequences are (batch, tokens, width).
 """
 
@@ -266,3 +267,37 @@ class CPC(nn.Module):
 
     def forward(self, tokens: torch.Tensor) -> torch.Tensor:
         return torch.tanh(self.head(tokens.mean(dim=1)))
+
+
+class SC(nn.Module):
+    """Superior colliculus: a shallow, full-resolution retinal pathway beside the cortex; a
+    priority map per kind of frame t and its change since t−1, read at its peak: how near a
+    pedestrian and a vehicle in the path are (with ModelConfig.hazard_sc the hazard head's first
+    two outputs are the nearer of its own and these). It never sees the speed, so it cannot read
+    "fast, so nothing near"."""
+
+    def __init__(self, frame_hw: tuple[int, int], n_commands: int, kinds: int = 2,
+                 widths: tuple[int, int, int] = (16, 32, 64)):
+        super().__init__()
+        a, b, c = widths
+        # 5×5 stride 2, then two stride-2 stages each with a 3×3 after: an eighth of the input,
+        # a grid cell of 8×8 pixels (a person 10 m off is 3 pixels wide in a 64×192 frame).
+        self.retina = nn.Sequential(
+            conv_bn_relu(6, a, 5, 2),
+            conv_bn_relu(a, b, 3, 2), conv_bn_relu(b, b, 3),
+            conv_bn_relu(b, c, 3, 2), conv_bn_relu(c, c, 3),
+        )
+        rows, cols = half(half(half(frame_hw[0]))), half(half(half(frame_hw[1])))
+        self.position = nn.Parameter(torch.zeros(1, c, rows, cols))
+        self.command = nn.Linear(n_commands, c)  # where the path goes depends on the command
+        self.priority = nn.Sequential(nn.Conv2d(c, c, 1), nn.ReLU(inplace=True), nn.Conv2d(c, kinds, 1))
+
+    def priority_map(self, frame_t: torch.Tensor, frame_prev: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
+        """(B, kinds, rows, cols): the nearness each cell of the grid reads (normalised frames in)."""
+        x = self.retina(torch.cat([frame_t, frame_t - frame_prev], dim=1))
+        x = torch.relu(x + self.position + self.command(command)[:, :, None, None])
+        return self.priority(x)
+
+    def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
+        """(B, kinds): each priority map's peak."""
+        return self.priority_map(frame_t, frame_prev, command).flatten(2).amax(dim=2)

@@ -58,3 +58,29 @@ def photometric(frame: torch.Tensor, prev: torch.Tensor, share: float,
         return torch.where(on, y, x)
 
     return change(frame), change(prev)
+
+
+# Command one-hot columns (bid_sim.routes: LEFT 1, RIGHT 2, STRAIGHT 3, LANEFOLLOW 4,
+# CHANGELANELEFT 5, CHANGELANERIGHT 6, less one) as a mirror image of the world reads them.
+MIRRORED_COMMAND = (1, 0, 2, 3, 5, 4)
+
+
+def mirror(frame: torch.Tensor, prev: torch.Tensor, command: torch.Tensor, target: torch.Tensor, share: float,
+           generator: torch.Generator | None = None
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(frame, prev, command one-hot, (steer, accel) target) with a share of the samples
+    mirrored left to right (`bid train --mirror SHARE`): the three-camera frame flipped
+    (left camera ↔ right, each mirrored) is the mirror image of the world, in which a left
+    turn is a right one and steering changes sign; what stands in the path and how near
+    stays. The town drives on the right and its mirror on the left, so this is meant for
+    fitting a detector (`--train-only SC`), not for lane keeping. No draws when share is 0."""
+    if share <= 0.0:
+        return frame, prev, command, target
+    n, dev = frame.shape[0], frame.device
+    on = (torch.rand(n, generator=generator) < share).to(dev)
+    flip = on.view(n, 1, 1, 1)
+    frame = torch.where(flip, frame.flip(-1), frame)
+    prev = torch.where(flip, prev.flip(-1), prev)
+    command = torch.where(on.view(n, 1), command[:, list(MIRRORED_COMMAND)], command)
+    target = torch.where(on.view(n, 1), target * torch.tensor([-1.0, 1.0], device=dev), target)
+    return frame, prev, command, target

@@ -53,6 +53,20 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hazard-attend", action="store_true", default=None,
                    help="with --hazard, a head whose per-kind queries attend over V2's and V4's feature "
                         "grids and MPC's tokens, rather than one reading MPC's mean (bid_model/model.py)")
+    p.add_argument("--hazard-sc", action="store_true", default=None,
+                   help="with --hazard, SC says it too: a shallow pathway on the full input frames and their "
+                        "change (never the speed), read at the peaks of its priority maps "
+                        "(bid_model/areas.py); the pedestrian and vehicle outputs are the nearer of the "
+                        "head's and SC's")
+    p.add_argument("--mirror", type=float, default=None, metavar="SHARE",
+                   help="share of training samples mirrored left to right, commands and steering with "
+                        "them (augment.mirror): for fitting a detector such as --train-only SC, since the "
+                        "mirrored town drives on the left (0 by default)")
+    p.add_argument("--stop-keep", type=float, default=None, metavar="SHARE",
+                   help="share of standing, braking frames trained on (recordings.balance_rows; small: 0.25)")
+    p.add_argument("--motion-drop", type=float, default=None, metavar="SHARE",
+                   help="share of training rows shown without motion, frame t-1 = frame t "
+                        "(recordings.motion_dropout; small: 0.5)")
     p.add_argument("--frame-hw", default=None, metavar="ROWSxCOLS",
                    help="the network's input size, e.g. 96x288 (the preset's by default: small 64x192); "
                         "with --init from another size the token grids' positional embeddings are resized")
@@ -66,7 +80,7 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed-input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the measured speed to the network (off in paper, on in small)")
     p.add_argument("--train-only", default=None, metavar="PARTS",
-                   help="train only these parts, comma-separated (areas V1 ... CPC, or forecast, hazard, "
+                   help="train only these parts, comma-separated (areas V1 ... CPC, or forecast, hazard, SC, "
                         "speed, dorsal_tokens); the rest stays as --init left it, e.g. --train-only hazard")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")

@@ -26,7 +26,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
-INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend"}
+INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -79,6 +79,9 @@ class ModelConfig:
     # The head attends over V2's and V4's grids and MPC's tokens rather than reading MPC's mean
     # (model.AttendingHazardHead): a small pedestrian is one cell of V2's grid.
     hazard_attend: bool = False
+    # SC (areas.SC), a shallow pathway on the full input frames beside the cortex, says it too:
+    # the pedestrian and vehicle outputs are the nearer of the head's and SC's (BID.forward_hazard).
+    hazard_sc: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -90,6 +93,8 @@ class ModelConfig:
             raise ValueError("filter groups must divide the filtered widths")
         if self.relations and not self.dorsal:
             raise ValueError("relations (DPC) need the dorsal stream (MT)")
+        if self.hazard_sc and not self.hazard:
+            raise ValueError("hazard_sc (SC) reads beside the hazard head: it needs hazard")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 
@@ -120,6 +125,7 @@ class TrainConfig:
     brake_lookahead: int = 1  # frames over which training labels brake ahead (recordings.anticipate_braking)
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
+    mirror: float = 0.0  # share of training samples mirrored left to right (augment.mirror)
     lambda_forecast: float = 0.0  # weight of the speed forecast's L1 loss (model.forecast_s)
     lambda_hazard: float = 0.0  # weight of the hazard head's L1 loss (model.hazard)
     # Weight, in that loss, of a frame with an actor of that kind in the path (train.hazard_loss).

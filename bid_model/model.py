@@ -11,7 +11,11 @@ the expert's braking starts; driving never reads it. With `config.hazard` anothe
 far ahead the nearest pedestrian and vehicle in the ego's path are, and the stop line of a red
 light on its route (bid_model.hazards), also
 from MPC's tokens (`forward(..., hazard=True)`): it asks the network to tell a pedestrian in
-its path from one beside it. Driving never reads it either.
+its path from one beside it. Driving never reads it either. With `config.hazard_sc` SC, a
+shallow pathway on frames t and t−1 at the full input size that never sees the speed
+(areas.SC), says it too, and the pedestrian's and the vehicle's nearness are the larger of
+the two: a person 10 m off is 3 pixels of a 64×192 frame, gone by IT's grid, and the head on
+MPC's tokens learnt that at 10 m/s nothing is near (docs/experiments.md).
 
 `BID.forward_features` returns every area's output by name; `forward_head` is CPC. Any area
 can be lesioned at inference (`set_lesions`, `lesioned`): its output is replaced by zeros or
@@ -26,8 +30,9 @@ from collections.abc import Iterator, Mapping
 import torch
 from torch import nn
 
-from bid_model.areas import CPC, DPC, IT, MPC, MT, OFC, V1, V2, V4, VPC, GridTokens, half
+from bid_model.areas import CPC, DPC, IT, MPC, MT, OFC, SC, V1, V2, V4, VPC, GridTokens, half
 from bid_model.config import ModelConfig
+from bid_model.hazards import PATH_KINDS
 from bid_sim.errors import BidError
 
 AREAS = ("V1", "V2", "V4", "IT", "MT", "VPC", "DPC", "OFC", "MPC", "CPC")
@@ -150,6 +155,8 @@ class BID(nn.Module):
         elif c.hazard:
             self.hazard_head = nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
                                              nn.Linear(c.cpc_hidden[1], self.hazard_kinds()))
+        # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
+        self.hazard_sc = SC(c.frame_hw, c.n_commands, len(PATH_KINDS)) if c.hazard_sc else None
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
@@ -260,6 +267,9 @@ class BID(nn.Module):
             speed = speed_mps.reshape(b, 1, 1).float() / SPEED_SCALE_MPS
             streams["speed"] = self.speed_token(speed)
         feats["MPC"] = self._area("MPC", streams)
+        if self.hazard_sc is not None:
+            feats["SC"] = self.hazard_sc(self._normalise(frame_t), self._normalise(frame_prev),
+                                         command_onehot.float())
         if self.training:
             self.mean_batches += 1
         return feats
@@ -274,32 +284,44 @@ class BID(nn.Module):
             raise BidError("this model has no speed forecast; train it with --forecast")
         return self.forecast_head(features["MPC"].mean(dim=1)) * SPEED_SCALE_MPS
 
-    def forward_hazard(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
+    def forward_hazard(self, features: dict[str, torch.Tensor], apart: bool = False) -> torch.Tensor:
         """(batch, hazard_kinds()): nearness of the nearest (pedestrian, vehicle) in the path and,
         with config.hazard_light, of a red light's stop line, from MPC's tokens (and with
-        config.hazard_attend from V2's and V4's grids too)."""
+        config.hazard_attend from V2's and V4's grids too; with config.hazard_sc the
+        pedestrian's and the vehicle's are the larger of the head's and SC's; with `apart` the
+        head's outputs then SC's, (batch, hazard_kinds() + 2), so that training fits each alone)."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
         if self.config.hazard_attend:
-            return self.hazard_head(features)
-        return self.hazard_head(features["MPC"].mean(dim=1))
+            near = self.hazard_head(features)
+        else:
+            near = self.hazard_head(features["MPC"].mean(dim=1))
+        if self.hazard_sc is not None:  # what either sees in the path
+            sc, k = features["SC"].to(near.dtype), len(PATH_KINDS)
+            if apart:
+                return torch.cat([near, sc], dim=1)
+            near = torch.cat([torch.maximum(near[:, :k], sc), near[:, k:]], dim=1)
+        return near
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,
-                forecast: bool = False, hazard: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
+                forecast: bool = False, hazard: bool = False,
+                hazard_apart: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
         """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6);
         with `forecast` and/or `hazard`, ((steer, accel), then the forecast speeds (B,
-        len(forecast_s)) in m/s, then the hazard nearness (B, hazard_kinds()), those asked for, in that order)."""
+        len(forecast_s)) in m/s, then the hazard nearness (B, hazard_kinds()), those asked for, in that order;
+        `hazard_apart`: forward_hazard(apart=True))."""
         feats = self.forward_features(frame_t, frame_prev, command_onehot, speed_mps)
         control = self.forward_head(feats)
-        extra = ([self.forward_forecast(feats)] if forecast else []) + ([self.forward_hazard(feats)] if hazard else [])
+        extra = (([self.forward_forecast(feats)] if forecast else [])
+                 + ([self.forward_hazard(feats, apart=hazard_apart)] if hazard else []))
         return (control, *extra) if extra else control
 
     def parts(self) -> dict[str, nn.Module]:
         """Every area by name, then the optional extra pathways this model has: dorsal_tokens,
-        speed, forecast, hazard (the names of parameter_counts and `bid train --train-only`)."""
+        speed, forecast, hazard, SC (the names of parameter_counts and `bid train --train-only`)."""
         extra = (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
-                 ("forecast", self.forecast_head), ("hazard", self.hazard_head))
+                 ("forecast", self.forecast_head), ("hazard", self.hazard_head), ("SC", self.hazard_sc))
         return {**self.areas, **{name: module for name, module in extra if module is not None}}
 
     def parameter_counts(self) -> dict[str, int]:

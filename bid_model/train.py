@@ -15,7 +15,8 @@ where one process with shards=N does (see train).
 L1 loss on (steer, accel) weighted λ_s = λ_a = 0.5 (accel's with `--accel-quantile` a pinball
 loss, see l1_loss), plus with `--forecast W` W times the L1 error of the speed forecast
 (BID.forward_forecast) and with `--hazard W` W times the L1 error of the hazard head
-(BID.forward_hazard, bid_model.hazards); AdamW with weight decay on weights only;
+(BID.forward_hazard, bid_model.hazards; with `--hazard-sc` plus that of SC's pedestrian and
+vehicle outputs, each fitted alone though driving reads the nearer); AdamW with weight decay on weights only;
 the lr halves at the (scaled) milestones. A run folder holds config.json (resolved config,
 git hash, software versions), dataset.json, metrics.csv, last.pt and best.pt (atomic, with
 optimiser and scheduler state for --resume) and the plots mae.png and steering.png.
@@ -45,7 +46,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 from tqdm import tqdm
 
-from bid_model.augment import photometric
+from bid_model.augment import mirror, photometric
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
 from bid_model.config import (
     FORECAST_S,
@@ -57,7 +58,7 @@ from bid_model.config import (
     with_variant,
 )
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M, SEEN_NEARNESS
+from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M, PATH_KINDS, SEEN_NEARNESS
 from bid_model.model import BID, SPEED_SCALE_MPS, hazard_kinds, resize_grid_tokens
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
@@ -472,7 +473,9 @@ def _write_metrics(history: list[dict[str, Any]], path: Path) -> None:
 def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, tc: TrainConfig,
                 device: torch.device, bar_desc: str | None) -> tuple[float, int]:
     """One pass over `loader`; (sum of batch losses × batch sizes, samples) of this process."""
-    set_train_mode(net.module if isinstance(net, nn.parallel.DistributedDataParallel) else net, tc)
+    base = net.module if isinstance(net, nn.parallel.DistributedDataParallel) else net
+    set_train_mode(base, tc)
+    apart = base.config.hazard_sc and tc.lambda_hazard > 0  # the head and SC fitted each alone
     loss_sum = torch.zeros((), dtype=torch.float64, device=device)
     samples, t0 = 0, time.perf_counter()
     bar = tqdm(loader, desc=bar_desc, unit="batch", disable=bar_desc is None, leave=False,
@@ -482,15 +485,23 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
         inputs = (*inputs[:3], noisy_speed(inputs[3], tc.speed_noise))
         if tc.augment > 0:
             inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
+        if tc.mirror > 0:
+            *flipped, target = mirror(*inputs[:3], target, tc.mirror)
+            inputs = (*flipped, inputs[3])
         with _autocast(device):
             pred, ahead, hazard = _split_outputs(
-                net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0), tc)
+                net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0,
+                    **({"hazard_apart": True} if apart else {})), tc)
         loss = l1_loss(pred, target, tc)
         if ahead is not None:
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
         if hazard is not None:
-            loss = loss + tc.lambda_hazard * hazard_loss(hazard, batch["hazard"][:, :hazard.shape[1]].to(device),
-                                                         tc.hazard_pos_weight)
+            near = batch["hazard"].to(device)
+            own = hazard.shape[1] - (len(PATH_KINDS) if apart else 0)  # the head's outputs, then SC's
+            loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], tc.hazard_pos_weight)
+            if apart:
+                loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, own:], near[:, :len(PATH_KINDS)],
+                                                             tc.hazard_pos_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -804,7 +815,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
-             "--hazard-attend": args.hazard_attend, "--train-only": args.train_only}
+             "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
+             "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
+             "--train-only": args.train_only}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -838,6 +851,13 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not 0.0 <= args.augment <= 1.0:
             raise BidError(f"--augment is the share of training samples to augment, 0 to 1; got {args.augment}")
         tc = dataclasses.replace(tc, augment=args.augment)
+    for flag, value, field in (("--stop-keep", args.stop_keep, "stop_keep"), ("--mirror", args.mirror, "mirror"),
+                               ("--motion-drop", args.motion_drop, "motion_drop")):
+        if value is not None:
+            if not (0.0 < value <= 1.0 if field == "stop_keep" else 0.0 <= value <= 1.0):
+                raise BidError(f"{flag} is a share of training rows, {'above 0' if field == 'stop_keep' else '0'} "
+                               f"to 1; got {value}")
+            tc = dataclasses.replace(tc, **{field: value})
     if args.hard_brake is not None:
         tc = dataclasses.replace(tc, hard_brake=args.hard_brake)
     if args.accel_quantile is not None:
@@ -871,6 +891,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard:
             raise BidError("--hazard-attend shapes the hazard head: add --hazard WEIGHT")
         model = dataclasses.replace(model, hazard_attend=True)
+    if args.hazard_sc:
+        if not model.hazard:
+            raise BidError("--hazard-sc (SC) reads beside the hazard head: add --hazard WEIGHT")
+        model = dataclasses.replace(model, hazard_sc=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

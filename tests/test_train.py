@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from bid_model.augment import photometric
-from bid_model.checkpoint import load_checkpoint, load_model, save_checkpoint
+from bid_model.checkpoint import average_checkpoints, load_checkpoint, load_model, save_checkpoint
 from bid_model.config import RunConfig, tiny, with_variant
 from bid_model.data import synthetic_split
 from bid_model.model import BID
@@ -696,3 +696,71 @@ def test_attending_hazard_head_fits_alone_on_a_trained_trunk_and_reads_v2(record
     assert bid(["train", "--preset", "tiny", "--synthetic", "--hazard-attend", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert "add --hazard WEIGHT" in err and "\n" not in err
+
+
+def test_sc_fits_alone_beside_a_trained_head_and_gives_the_pedestrian_output(recorded, tmp_path, capsys):
+    """--hazard --hazard-sc --train-only SC from a run with a hazard head: only SC moves; the
+    pedestrian and vehicle outputs are the larger of the head's and SC's peaks (read from the
+    frames), the light's is the head's."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--hazard", "1", "--out", str(tmp_path / "hz")]) == 0
+    assert bid([*base, "--init", str(tmp_path / "hz" / "last.pt"), "--hazard", "1", "--hazard-sc",
+                "--train-only", "SC", "--stop-keep", "1", "--motion-drop", "0", "--mirror", "0.5",
+                "--out", str(tmp_path / "sc")]) == 0
+    start = load_checkpoint(tmp_path / "hz" / "last.pt")["model"]
+    tuned = load_checkpoint(tmp_path / "sc" / "last.pt")
+    assert tuned["config"]["model"]["hazard_sc"]
+    assert tuned["config"]["train"]["stop_keep"] == 1.0 and tuned["config"]["train"]["motion_drop"] == 0.0
+    assert tuned["config"]["train"]["mirror"] == 0.5
+    assert all(torch.equal(v, tuned["model"][k]) for k, v in start.items())
+    assert any(k.startswith("hazard_sc.retina") for k in tuned["model"])
+    plain, _ = load_model(tmp_path / "hz" / "last.pt", preset="tiny")
+    model, _ = load_model(tmp_path / "sc" / "last.pt", preset="tiny")
+    frame = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 2]]
+    with torch.no_grad():
+        near = model(frame, prev, cmd, hazard=True)[1]
+        feats = model.forward_features(frame, prev, cmd)
+        before = plain(frame, prev, cmd, hazard=True)[1]
+    assert near.shape == (2, 3)
+    assert torch.allclose(near[:, :2], torch.maximum(before[:, :2], feats["SC"]))  # the nearer of the two
+    assert torch.allclose(near[:, 2:], before[:, 2:])  # the light is the head's
+    frame_f = frame.float().requires_grad_(True)
+    model.forward_features(frame_f, prev, cmd)["SC"].sum().backward()
+    assert frame_f.grad.abs().sum() > 0  # SC reads the frame itself, not MPC's tokens
+    with torch.no_grad():  # training fits each alone: the head's three outputs, then SC's two
+        apart = model(frame, prev, cmd, hazard=True, hazard_apart=True)[1]
+    assert apart.shape == (2, 5) and torch.equal(apart[:, 3:], feats["SC"]) and torch.allclose(apart[:, :3], before)
+    # Averaged, the run keeps SC with its head.
+    average_checkpoints([tmp_path / "sc" / "last.pt", tmp_path / "sc" / "last.pt"], tmp_path / "avg.pt")
+    avg = load_checkpoint(tmp_path / "avg.pt")
+    assert avg["config"]["model"]["hazard_sc"] and "hazard_sc.position" in avg["model"]
+    for flags, says in ((["--hazard-sc"], "add --hazard WEIGHT"),
+                        (["--hazard", "1", "--stop-keep", "0"], "--stop-keep is a share"),
+                        (["--hazard", "1", "--motion-drop", "1.5"], "--motion-drop is a share"),
+                        (["--hazard", "1", "--mirror", "2"], "--mirror is a share")):
+        assert bid(["train", "--preset", "tiny", "--data", str(recorded), *flags, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err
+
+
+def test_mirror_flips_the_world_left_to_right_with_its_commands_and_steering():
+    from bid_model.augment import mirror
+
+    frame = torch.randint(0, 256, (4, 3, 8, 24), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (4, 3, 8, 24), dtype=torch.uint8)
+    command = torch.eye(6)[[0, 1, 4, 3]]  # LEFT, RIGHT, CHANGELANELEFT, LANEFOLLOW
+    target = torch.tensor([[0.5, 0.2], [-0.3, -1.0], [0.1, 0.0], [0.0, 0.4]])
+    f, p, c, t = mirror(frame, prev, command, target, 1.0)
+    assert torch.equal(f, frame.flip(-1)) and torch.equal(p, prev.flip(-1))
+    assert c.argmax(1).tolist() == [1, 0, 5, 3]  # RIGHT, LEFT, CHANGELANERIGHT, LANEFOLLOW
+    assert torch.equal(t, target * torch.tensor([-1.0, 1.0]))
+    assert all(torch.equal(a, b) for a, b in zip(mirror(f, p, c, t, 1.0), (frame, prev, command, target), strict=True))
+    state = torch.get_rng_state()
+    assert mirror(frame, prev, command, target, 0.0)[0] is frame
+    assert torch.equal(state, torch.get_rng_state())  # no draws: runs without it train as before
+    torch.manual_seed(0)
+    f, _, c, t = mirror(frame, prev, command, target, 0.5)
+    flipped = [bool(torch.equal(f[i], frame[i].flip(-1))) for i in range(3)]  # steer ≠ 0
+    assert flipped == [bool(t[i, 0] == -target[i, 0]) for i in range(3)]
