@@ -19,11 +19,12 @@ AGENT ?= bid
 # The BID shipped in the repository (`small` preset, trained on CPU; its card is beside it).
 SHIPPED := checkpoints/bid_small.pt
 CHECKPOINT ?= $(SHIPPED)
-# How the shipped BID drives: its hazard head (fitted to the frozen network) brakes for the
-# vehicle and the red light it sees in the path, and moves a standing ego off once it has
-# seen nothing within 8 m for 8 s (README "Results"). Another CHECKPOINT drives on its
-# control head alone unless DRIVE gives flags; `make evaluate DRIVE=` so drives the shipped one.
-SHIPPED_DRIVE := --vehicle-brake 1 --light-brake 1 --move-off 8
+# How the shipped BID drives: its hazard head and SC (both fitted to the frozen network) brake
+# for the pedestrian, the vehicle and the red light they see in the path, and move a standing
+# ego off once they have seen nothing within 8 m for 8 s (README "Results"). Another CHECKPOINT
+# drives on its control head alone unless DRIVE gives flags; `make evaluate DRIVE=` so drives
+# the shipped one.
+SHIPPED_DRIVE := --vehicle-brake 1 --light-brake 1 --move-off 8 --hazard-brake 1
 DRIVE ?= $(if $(filter $(SHIPPED),$(CHECKPOINT)),$(SHIPPED_DRIVE))
 WEATHERS ?= test
 SEEDS ?= 3
@@ -108,10 +109,11 @@ dagger: $(STAMP)
 # 0.3-quantile as the target, and the equal-weight average of the corner round and that
 # (runs/reproduce_soup: the shipped network), a hazard head fitted to it with the network
 # frozen, on fresh recordings (data/town01_hz: demonstrations and a DAgger round it drove;
-# runs/reproduce_hazard: what is shipped), the Town02 NoCrash for the expert and for the new
-# BID driving as the shipped one does (SHIPPED_DRIVE), and the result tables. The shipped
-# checkpoint is left alone: copy runs/reproduce_hazard/last.pt over it with `bid export`
-# only if it drives better.
+# runs/reproduce_hazard), SC fitted beside it on those and on more pedestrians (data/town01_sc:
+# links to data/town01_hz's files and 96 normal and crowded demonstrations; runs/reproduce_sc:
+# what is shipped), the Town02 NoCrash for the expert and for the new BID driving as the
+# shipped one does (SHIPPED_DRIVE), and the result tables. The shipped checkpoint is left
+# alone: copy runs/reproduce_sc/last.pt over it with `bid export` only if it drives better.
 reproduce: $(STAMP)
 	$(MAKE) record TOWN=01
 	$(BID) train --preset small --data data/town01 --name reproduce $(if $(wildcard runs/reproduce/last.pt),--resume)
@@ -146,10 +148,17 @@ reproduce: $(STAMP)
 	$(BID) train --preset small --data data/town01_hz --name reproduce_hazard \
 		$(if $(wildcard runs/reproduce_hazard/last.pt),--resume,--init runs/reproduce_soup/last.pt --epochs 1 \
 		--lr 1e-3 --augment 0.8 --forecast 0.5 --hazard 1 --hazard-pos-weight 2 --train-only hazard)
+	test -d data/town01_sc/hz || $(call link_episodes,data/town01_hz,data/town01_sc/hz,1)
+	$(BID) record --town 01 --episodes 96 --densities normal,crowded --perturb $(PERTURB) --seed 50 \
+		--workers $(WORKERS) --out data/town01_sc/expert50
+	$(BID) train --preset small --data data/town01_sc --name reproduce_sc \
+		$(if $(wildcard runs/reproduce_sc/last.pt),--resume,--init runs/reproduce_hazard/last.pt --epochs 1 \
+		--lr 1e-3 --augment 0.8 --mirror 0.5 --stop-keep 1 --motion-drop 0 --forecast 0.5 --hazard 1 \
+		--hazard-sc --hazard-pos-weight 4 --train-only SC)
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent expert \
 		--workers $(WORKERS) --out results/reproduce/town02_expert
 	$(BID) evaluate --town 02 --density none,normal,crowded --weathers test --seeds 3 --agent bid \
-		--checkpoint runs/reproduce_hazard/last.pt $(SHIPPED_DRIVE) --workers $(WORKERS) \
+		--checkpoint runs/reproduce_sc/last.pt $(SHIPPED_DRIVE) --workers $(WORKERS) \
 		--out results/reproduce/town02_bid_small
 	$(BID) lesion --checkpoint runs/reproduce_soup/last.pt --town 02 --density normal \
 		--out results/reproduce/lesion_town02_normal

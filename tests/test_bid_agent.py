@@ -191,7 +191,8 @@ def test_clear_to_move_off_needs_nothing_seen_within_8_m():
 def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
     """`make demo` and `make evaluate` drive checkpoints/bid_small.pt with the Makefile's
     SHIPPED_DRIVE: its hazard head must have the three outputs those brakes and move-off read,
-    and reading it leaves the control head's output as it is."""
+    SC beside it (the nearer of the two counts), and reading them leaves the control head's
+    output as it is."""
     import torch
 
     root = Path(__file__).resolve().parents[1]
@@ -199,10 +200,11 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
     flags = next(ln for ln in makefile if ln.startswith("SHIPPED_DRIVE :=")).split(":=", 1)[1].split()
     options = {flag.removeprefix("--").replace("-", "_"): float(value)
                for flag, value in zip(flags[::2], flags[1::2], strict=True)}
-    assert set(options) == {"vehicle_brake", "light_brake", "move_off"}
+    assert set(options) == {"vehicle_brake", "light_brake", "move_off", "hazard_brake"}
     shipped = root / "checkpoints" / "bid_small.pt"
     agent = BIDAgent(shipped, **options)
-    assert agent.vehicle_brake == agent.light_brake == 1.0 and agent.move_off_steps == 80
+    assert agent.vehicle_brake == agent.light_brake == agent.hazard_brake == 1.0 and agent.move_off_steps == 80
+    assert agent.config.model.hazard_sc
     plain = BIDAgent(shipped)
     frame, prev = torch.randint(0, 256, (2, 1, 3, *plain.hw), dtype=torch.uint8,
                                 generator=torch.Generator().manual_seed(0))
@@ -213,6 +215,9 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
         control, near = agent.model(frame, prev, cmd, speed, hazard=True)
         assert torch.equal(control, plain.model(frame, prev, cmd, speed))
     assert near.shape == (1, 3)  # pedestrian, vehicle, red light
+    with torch.inference_mode():
+        feats = agent.model.forward_features(frame, prev, cmd, speed)
+    assert torch.all(near[:, :2] >= feats["SC"]) and torch.allclose(near[:, 2:], agent.model.hazard_head(feats["MPC"].mean(1))[:, 2:])
 
 
 def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, recorded, tmp_path, capsys):
