@@ -31,6 +31,12 @@ NEARBY_M = 120.0  # actors farther than this from the ego are left out of the sn
 OVERPASS_M = 15.0  # near a crossing of two streets without a junction, each is on its own level
 DT_S = 0.1
 
+# libsumo keeps each moveToXY in a process-wide table (by vehicle ID) until the next step
+# takes it up, and closing does not clear it: a simulation closed with one pending hands the
+# next one a pointer to its freed ego, which SUMO 1.28 follows in its first step (a segfault
+# when the next town differs). True while our last moveToXY waits for a step.
+_move_pending = False
+
 
 class SumoError(BidError):
     """SUMO failed mid-episode."""
@@ -63,8 +69,7 @@ class World:
 
     # -- lifecycle ----------------------------------------------------------------------
     def _start(self) -> None:
-        if traci.isLoaded():
-            traci.close()
+        _close_sumo()
         args = [
             sumo_binary(), "-n", str(self.town.net_file),
             "--step-length", str(DT_S), "--seed", str(self.seed),
@@ -116,8 +121,7 @@ class World:
         traci.vehicle.setColor(EGO_ID, (255, 255, 255, 255))
 
     def close(self) -> None:
-        if traci.isLoaded():
-            traci.close()
+        _close_sumo()
 
     def __enter__(self) -> World:
         return self
@@ -127,10 +131,14 @@ class World:
 
     # -- stepping -----------------------------------------------------------------------
     def _sumo_step(self) -> None:
+        global _move_pending
         traci.simulationStep()
+        _move_pending = False
 
     def _place_ego(self) -> None:
+        global _move_pending
         xf, yf = self.ego.front_bumper(self.params)
+        _move_pending = True
         traci.vehicle.moveToXY(EGO_ID, "", -1, xf, yf, sumo_angle_deg(self.ego.yaw_rad), keepRoute=2)
         traci.vehicle.setSpeed(EGO_ID, self.ego.speed_mps)
 
@@ -267,6 +275,25 @@ class World:
         pedestrians = self._read_pedestrians()
         self.traffic.step(self._all_vehicle_ids, self._all_person_ids)
         return vehicles, pedestrians
+
+
+def _close_sumo() -> None:
+    """Closes the running simulation, if any, after a step that takes up a pending moveToXY
+    (see _move_pending); where that step fails, the ego goes first, so SUMO drops the move."""
+    global _move_pending
+    if not traci.isLoaded():
+        return
+    if _move_pending:
+        try:
+            traci.simulationStep()
+        except traci.TraCIException:
+            try:
+                traci.vehicle.remove(EGO_ID)
+                traci.simulationStep()
+            except traci.TraCIException as e:
+                log.debug("could not flush the ego's last move before closing: %s", e)
+        _move_pending = False
+    traci.close()
 
 
 def _lane_pos(graph: RoadGraph, lane_id: str, ego: EgoState) -> float:

@@ -70,3 +70,24 @@ def test_sumo_error_mid_episode_is_a_bid_error():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_an_agent_failing_before_its_first_step_leaves_sumo_able_to_start_another_town():
+    """The ego's first moveToXY waits for a step that never comes; libsumo keeps it past
+    close, and the next simulation's first step followed it into the freed ego (a segfault,
+    every time when the next town differs). Run in its own process so a crash fails only this."""
+    code = (
+        "from bid_sim.agents import LaneFollower\n"
+        "from bid_sim.episode import run_episode\n"
+        "class Broken(LaneFollower):\n"
+        "    def act(self, obs):\n"
+        "        raise ZeroDivisionError('a bug in the agent')\n"
+        "try:\n"
+        "    run_episode('02', 3, 'WetSunset', 'none', 0, Broken(), max_steps=20)\n"
+        "except ZeroDivisionError:\n"
+        "    pass\n"
+        "r = run_episode('01', 0, 'WetSunset', 'none', 0, LaneFollower(), max_steps=5)\n"
+        "print('ok', r.steps)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok 5", out.stderr[-2000:]
