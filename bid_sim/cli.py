@@ -133,7 +133,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     routes = [int(r) for r in args.routes.split(",")] if args.routes else None
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
     brakes = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
-              "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off}
+              "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
+              "path_memory": args.path_memory}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
@@ -290,6 +291,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--agent bid with a model trained with --hazard: once the ego has stood S seconds "
                          "and the hazard head sees no red light, pedestrian or vehicle within 8 m, "
                          "move off at accel 0.5 whatever the control head says (bid_model/agent.py)")
+    ev.add_argument("--path-memory", type=float, default=None, metavar="S",
+                    help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
+                         "the path within 6 m counts for the brakes and move-off S seconds after the head "
+                         "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
+                         "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

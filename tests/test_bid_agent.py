@@ -176,6 +176,39 @@ def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
     assert vehicle_brake(0.9, 3.0) == pytest.approx(9 / 3 / 8)  # 2.5 m off at 3 m/s
     assert vehicle_brake(1.0, 8.0) == 1.0
     assert vehicle_brake(0.9, 1.0) == 0.0  # 2.5 m off at 1 m/s: 1/3/8 is below BIND_SHARE, close up
+    # With hold (path_memory), within 3 m and slow (below 2 m/s) it holds the ego standing.
+    assert vehicle_brake(0.9, 1.0, hold=True) == vehicle_brake(0.9, 0.0, hold=True) == 1.0
+    assert vehicle_brake(0.84, 1.0, hold=True) == 0.0  # 4 m off: as without
+    assert vehicle_brake(0.9, 2.5, hold=True) == pytest.approx(6.25 / 3 / 8)  # not at 2.5 m/s
+
+
+def test_path_memory_keeps_what_was_seen_near_once_the_head_loses_it():
+    from bid_model.agent import PathMemory
+
+    mem = PathMemory(keep_s=1.0)  # 10 steps
+    assert mem.update((0.0, 0.8, 0.3), 4.0) == pytest.approx((0.0, 0.8, 0.3))  # a car seen 5 m ahead
+    # Lost: it stays, 0.4 m nearer for every step at 4 m/s, as if standing; the light is never kept.
+    got = mem.update((0.0, 0.0, 0.0), 4.0)
+    assert got[0] == 0.0 and got[1] == pytest.approx(1 - 4.6 / 25) and got[2] == 0.0
+    for _ in range(9):
+        got = mem.update((0.0, 0.0, 0.0), 0.2)
+    assert got[1] == pytest.approx(1 - (4.6 - 9 * 0.02) / 25)
+    assert mem.update((0.0, 0.0, 0.0), 0.2) == (0.0, 0.0, 0.0)  # the 11th step unseen: forgotten
+    # Drawn nearer by 2 m at most: a false sighting 5 m ahead never comes within 3 m.
+    mem.update((0.0, 0.8, 0.0), 4.0)
+    for _ in range(10):
+        got = mem.update((0.0, 0.0, 0.0), 4.0)
+    assert got[1] == pytest.approx(1 - 3.0 / 25)
+    # Seen farther than REMEMBER_M (10 m): never kept; a pedestrian is kept as a car is.
+    mem.reset()
+    mem.update((0.6, 0.6, 0.0), 5.0)
+    assert mem.update((0.0, 0.0, 0.0), 5.0) == (0.0, 0.0, 0.0)
+    mem.update((0.84, 0.0, 0.0), 5.0)  # a pedestrian 4 m ahead
+    assert mem.update((0.0, 0.0, 0.0), 5.0)[0] == pytest.approx(1 - 3.5 / 25)
+    # A reading is what there is now: a car followed at its speed, seen farther, is farther.
+    mem.update((0.0, 0.92, 0.0), 3.0)
+    assert mem.update((0.0, 0.8, 0.0), 3.0)[1] == pytest.approx(0.8)
+    assert mem.update((0.0, 0.0, 0.0), 3.0)[1] == pytest.approx(1 - 4.7 / 25)
 
 
 def test_clear_to_move_off_needs_nothing_seen_within_8_m():
@@ -299,10 +332,14 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     for option in ("light_brake", "move_off"):
         with pytest.raises(BidError, match="no red-light output"):
             BIDAgent(tmp_path / "old.pt", **{option: 1.0})
-    for option in ("hazard_brake", "vehicle_brake", "light_brake", "move_off"):
+    for option in ("hazard_brake", "vehicle_brake", "light_brake", "move_off", "path_memory"):
         with pytest.raises(BidError, match="no hazard head"):
             BIDAgent(checkpoint, **{option: 1.0})
-    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off"):
+    with pytest.raises(BidError, match="path_memory is read by the brakes"):
+        BIDAgent(tmp_path / "hz" / "last.pt", path_memory=3.0)
+    with pytest.raises(BidError, match="path_memory must be 0 or more"):
+        BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, path_memory=-1.0)
+    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off", "--path-memory"):
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 
