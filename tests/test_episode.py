@@ -53,6 +53,11 @@ def test_negative_seed(town02):
         run_episode(town02, 0, "ClearNoon", "none", -1, LaneFollower())
 
 
+def _in_child(code: str) -> subprocess.CompletedProcess:
+    """Runs `code` in a fresh Python process: a libsumo crash fails only the test that asked."""
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+
 def test_sumo_error_mid_episode_is_a_bid_error():
     """Run in its own process: after this error libsumo 1.28 can leave the process unable to
     start SUMO again once GEOS (shapely) has run in between (it segfaults)."""
@@ -68,7 +73,7 @@ def test_sumo_error_mid_episode_is_a_bid_error():
         "assert not traci.isLoaded()\n"
         "print('ok')\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    out = _in_child(code)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
 
 
@@ -89,5 +94,5 @@ def test_an_agent_failing_before_its_first_step_leaves_sumo_able_to_start_anothe
         "r = run_episode('01', 0, 'WetSunset', 'none', 0, LaneFollower(), max_steps=5)\n"
         "print('ok', r.steps)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    out = _in_child(code)
     assert out.returncode == 0 and out.stdout.strip() == "ok 5", out.stderr[-2000:]
