@@ -50,6 +50,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard, weigh each frame with a pedestrian (vehicle) in the path W times "
                         "in the head's pedestrian (vehicle) loss, so that a rare kind is not fitted as "
                         "'none' (1 by default)")
+    p.add_argument("--hazard-ahead", type=float, default=None, metavar="S",
+                   help="with --hazard, a pedestrian counts in the path also where the recording shows it "
+                        "in the path ahead of the ego within S seconds, so that one about to walk in is "
+                        "seen before it does (0, where it is now, by default; bid_model/hazards.py)")
     p.add_argument("--hazard-attend", action="store_true", default=None,
                    help="with --hazard, a head whose per-kind queries attend over V2's and V4's feature "
                         "grids and MPC's tokens, rather than one reading MPC's mean (bid_model/model.py)")

@@ -130,6 +130,8 @@ class TrainConfig:
     lambda_hazard: float = 0.0  # weight of the hazard head's L1 loss (model.hazard)
     # Weight, in that loss, of a frame with an actor of that kind in the path (train.hazard_loss).
     hazard_pos_weight: float = 1.0
+    # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
+    hazard_ahead_s: float = 0.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)
     speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
     train_only: tuple[str, ...] = ()  # the parts trained (BID.parts), the rest frozen; () all (train.freeze_all_but)

@@ -13,6 +13,13 @@ or amber light on the route, from the frame's recorded /ego/state.
 
 Footprints are three discs along an actor's length (one for a pedestrian, whose box is square):
 a stadium as wide as the box, close enough for a 4.6 m car beside a 3.5 m lane.
+
+With `ped_ahead_s` (`bid train --hazard-ahead S`) a pedestrian also counts where it will be: one
+that the recording shows in the path ahead of the ego within S seconds (looked at every
+AHEAD_STEP_S) is in the path now, at the distance from the ego's front to where it will be. A
+pedestrian about to step off the kerb or walking across the street a turn leads into is what
+the expert brakes for; in the path only by then, it is seen too late to stop (the BID's
+failures, docs/experiments.md).
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ PATH_KINDS = KINDS[:2]  # those found in the path (path_hazards)
 # in the path, within 20 of the 25 m: where `bid evaluate --hazard-brake` / `--vehicle-brake` start.
 SEEN_NEARNESS = 0.2
 NEAR_M = 10.0  # an actor in the path this close must be seen (the validation's detection rate)
+AHEAD_STEP_S = 0.5  # with ped_ahead_s, where pedestrians will be is looked at this often
 _VERSION = "hazard-v1"  # part of the cache key: bump when the definition changes
 
 
@@ -87,9 +95,11 @@ def light_distance(state: dict) -> float:
     return float(np.clip(dist, 0.0, HAZARD_AHEAD_M))
 
 
-def path_hazards(snaps: list[Snapshot]) -> np.ndarray:
+def path_hazards(snaps: list[Snapshot], ped_ahead_s: float = 0.0) -> np.ndarray:
     """(T, 2) float32: per snapshot (one episode, in step order) the distance in metres from
-    the ego's front to the nearest pedestrian and vehicle in its path (HAZARD_AHEAD_M: none)."""
+    the ego's front to the nearest pedestrian and vehicle in its path (HAZARD_AHEAD_M: none);
+    with `ped_ahead_s`, pedestrians also where they will be in the path ahead of the ego within
+    that many seconds (see the module's docstring)."""
     out = np.full((len(snaps), len(PATH_KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
     if not snaps:
         return out
@@ -102,28 +112,45 @@ def path_hazards(snaps: list[Snapshot]) -> np.ndarray:
     # np.interp needs strictly increasing arc lengths: a standing ego repeats its pose.
     keep = np.r_[True, np.diff(s_ext) > 1e-6]
     xy_ext, s_ext = xy_ext[keep], s_ext[keep]
+    times = np.array([s.time_s for s in snaps])
+    offsets = AHEAD_STEP_S * np.arange(1, int(ped_ahead_s / AHEAD_STEP_S + 1e-9) + 1)
+    # The snapshot at each look ahead of each snapshot (-1: past the episode's end).
+    later = np.searchsorted(times, times[:, None] + offsets[None, :] - 1e-6)
+    later[later >= len(snaps)] = -1
+
+    def path_from(u: int) -> np.ndarray:
+        path = _path_points(xy_ext, s_ext, s_all[u])
+        path[0] = xy[u]  # the ego itself, not the first pose after a standstill's jitter
+        return path
+
     for t, snap in enumerate(snaps):
-        path = _path_points(xy_ext, s_ext, s_all[t])
-        path[0] = xy[t]  # the ego itself, not the first pose after a standstill's jitter
+        path = path_from(t)
         half_width = snap.ego.width_m / 2 + CORRIDOR_MARGIN_M
         front = snap.ego.length_m / 2
-        out[t] = (_nearest_in_path(snap.pedestrians, path, half_width, front),
-                  _nearest_in_path(snap.vehicles, path, half_width, front))
+        ped = _nearest_in_path(snap.pedestrians, path, half_width, front)
+        for u in later[t]:
+            if u < 0:
+                break
+            # Where the path ahead of the ego at u meets a pedestrian then, from the front at t.
+            found = _nearest_in_path(snaps[u].pedestrians, path_from(u), half_width, front)
+            if found < HAZARD_AHEAD_M:
+                ped = min(ped, float(min(s_all[u] - s_all[t] + found, HAZARD_AHEAD_M)))
+        out[t] = (ped, _nearest_in_path(snap.vehicles, path, half_width, front))
     return out
 
 
-def file_hazards(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def file_hazards(path: str | os.PathLike, ped_ahead_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(steps (T,), path_hazards (T, 2)) of one recording."""
     snaps = [snap for snap, _control in read_snapshots(path)]
-    return np.array([s.step for s in snaps], dtype=np.int64), path_hazards(snaps)
+    return np.array([s.step for s in snaps], dtype=np.int64), path_hazards(snaps, ped_ahead_s)
 
 
-def _file_job(path: str) -> tuple[np.ndarray, np.ndarray]:
-    return file_hazards(path)
+def _file_job(job: tuple[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    return file_hazards(*job)
 
 
-def _key(files: list[Path]) -> str:
-    h = hashlib.sha1(_VERSION.encode())
+def _key(files: list[Path], ped_ahead_s: float = 0.0) -> str:
+    h = hashlib.sha1(_VERSION.encode() + (f";ahead={ped_ahead_s:g}".encode() if ped_ahead_s else b""))
     for f in files:
         st = f.stat()
         h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
@@ -131,18 +158,18 @@ def _key(files: list[Path]) -> str:
 
 
 def index_hazards(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: Path | None,
-                  workers: int | None = None) -> np.ndarray:
-    """(N, 2) float32 path_hazards of every index row (recording `episode[i]`, `step[i]`),
+                  workers: int | None = None, ped_ahead_s: float = 0.0) -> np.ndarray:
+    """(N, 2) float32 path_hazards (with `ped_ahead_s`) of every index row (recording `episode[i]`, `step[i]`),
     read from `cache_dir` when it holds them for these files, else computed (one worker
     process per recording) and stored there. A row without a /scene record is HAZARD_AHEAD_M."""
-    path = cache_dir / f"hazards-{_key(files)}.npy" if cache_dir is not None else None
+    path = cache_dir / f"hazards-{_key(files, ped_ahead_s)}.npy" if cache_dir is not None else None
     if path is not None and path.exists():
         cached = np.load(path)
         if cached.shape == (len(step), len(PATH_KINDS)):
             return cached
     out = np.full((len(step), len(PATH_KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
     wanted = sorted(set(np.unique(episode).tolist()))
-    jobs = [str(files[e]) for e in wanted]
+    jobs = [(str(files[e]), ped_ahead_s) for e in wanted]
     workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))
     log.info("finding what stands in the path in %d recordings with %d workers", len(jobs), workers)
     if workers > 1 and len(jobs) > 1:

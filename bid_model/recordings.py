@@ -396,7 +396,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
                     brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1,
-                    hazard: bool = False) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    hazard: bool = False, hazard_ahead_s: float = 0.0) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
     The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake,
@@ -407,7 +407,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     `forecast_steps` the samples of both also hold "future_speed", the speeds that many steps
     ahead (`future_speeds`); with `hazard`, "hazard", what stands in the path
     (`hazard_nearness` of bid_model.hazards.index_hazards, cached beside the frames) and how
-    near a red light's stop line is (hazards.light_distance): (pedestrian, vehicle, red_light).
+    near a red light's stop line is (hazards.light_distance): (pedestrian, vehicle, red_light);
+    pedestrians also where they will be within `hazard_ahead_s` (hazards.path_hazards).
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -432,7 +433,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
     near = None
     if hazard:
-        in_path = index_hazards(index.files, index.episode, index.step, folder / CACHE_DIR if cache else None)
+        in_path = index_hazards(index.files, index.episode, index.step, folder / CACHE_DIR if cache else None,
+                                ped_ahead_s=hazard_ahead_s)
         near = hazard_nearness(np.column_stack([in_path, index.light_dist]))
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed), accel, forecast, near)
@@ -448,7 +450,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "forecast_steps": list(forecast_steps),
         "hazard_frames": None if near is None else {"pedestrian_in_path": int((near[:, 0] > 0).sum()),
                                                     "vehicle_in_path": int((near[:, 1] > 0).sum()),
-                                                    "red_light_ahead": int((near[:, 2] > 0).sum())},
+                                                    "red_light_ahead": int((near[:, 2] > 0).sum()),
+                                                    "pedestrians_ahead_s": hazard_ahead_s},
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
         "hold_repeat": hold_repeat, "train_yield_frames": int(yield_frames(index, accel)[balanced].sum()),

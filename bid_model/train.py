@@ -67,6 +67,7 @@ from bid_sim.world import DT_S
 log = logging.getLogger(__name__)
 
 DEFAULT_DATA = Path("data/town01")
+MAX_HAZARD_AHEAD_S = 5.0  # --hazard-ahead: pedestrians farther in the future are guesses
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
                   "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "val_mae_hazard_m", "val_ped_seen_near", "val_ped_seen_none",
@@ -244,7 +245,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       hard_brake=tc.hard_brake,
                                                       brake_lookahead=tc.brake_lookahead,
                                                       forecast_steps=ahead, hold_repeat=tc.hold_repeat,
-                                                      hazard=tc.lambda_hazard > 0)
+                                                      hazard=tc.lambda_hazard > 0,
+                                                      hazard_ahead_s=tc.hazard_ahead_s)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -815,6 +817,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
+             "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--train-only": args.train_only}
@@ -887,6 +890,12 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard:
             raise BidError("--hazard-pos-weight weighs the hazard head's loss: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, hazard_pos_weight=args.hazard_pos_weight)
+    if args.hazard_ahead is not None:
+        if not 0 <= args.hazard_ahead <= MAX_HAZARD_AHEAD_S:
+            raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {args.hazard_ahead}")
+        if not model.hazard:
+            raise BidError("--hazard-ahead shapes the hazard head's targets: add --hazard WEIGHT")
+        tc = dataclasses.replace(tc, hazard_ahead_s=args.hazard_ahead)
     if args.hazard_attend:
         if not model.hazard:
             raise BidError("--hazard-attend shapes the hazard head: add --hazard WEIGHT")

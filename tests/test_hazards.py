@@ -93,6 +93,29 @@ def test_a_standing_ego_looks_along_where_it_goes_next_and_past_the_end_straight
     assert path_hazards([]).shape == (0, 2)
 
 
+def walking(x0: float, y0: float, n: int = 80, vy_mps: float = 1.5) -> list[Snapshot]:
+    """`straight`'s ego at 5 m/s with a pedestrian walking north from (x0, y0), present throughout."""
+    return [snap(i, i * 0.5, 0.0, 0.0, peds=actors((x0, y0 + vy_mps * 0.1 * i, math.pi / 2, 0.5, 0.5)))
+            for i in range(n)]
+
+
+def test_with_a_look_ahead_a_pedestrian_about_to_walk_into_the_path_is_in_it_already():
+    # 3 m south of the path, 1.5 m/s north: in the corridor (1.35 + 0.25 m) from 1 s on, ahead of the ego.
+    snaps = walking(10.0, -3.0)
+    now, ahead = path_hazards(snaps)[0, 0], path_hazards(snaps, ped_ahead_s=1.5)[0, 0]
+    assert now == HAZARD_AHEAD_M
+    # Where it will be: its disc enters the corridor about 0.56 m before x = 10, from the front at t.
+    assert ahead == pytest.approx(10.0 - 0.56 - FRONT_M, abs=0.6)
+    # Half a second of look-ahead is not enough for it, and once it is in the path both agree.
+    assert path_hazards(snaps, ped_ahead_s=0.5)[0, 0] == HAZARD_AHEAD_M
+    assert path_hazards(snaps, ped_ahead_s=1.5)[12, 0] == pytest.approx(path_hazards(snaps)[12, 0], abs=1e-6)
+    # One that crosses where the ego has already passed is not in its way, nor one that stays on the kerb.
+    assert path_hazards(walking(1.0, -3.0), ped_ahead_s=1.5)[0, 0] == HAZARD_AHEAD_M
+    assert path_hazards(walking(10.0, -3.0, vy_mps=0.0), ped_ahead_s=1.5)[0, 0] == HAZARD_AHEAD_M
+    # Near the episode's end there is less future to look at: no error, what there is.
+    assert path_hazards(snaps[:3], ped_ahead_s=1.5).shape == (3, 2)
+
+
 def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
     files, _ = find_recordings(recorded)
     steps, dist = file_hazards(files[0])
@@ -113,10 +136,15 @@ def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
             assert sample["hazard"].tolist() == pytest.approx(want[data.rows[i]].tolist())
     assert desc["hazard_frames"] == {"pedestrian_in_path": int((want[:, 0] > 0).sum()),
                                      "vehicle_in_path": int((want[:, 1] > 0).sum()),
-                                     "red_light_ahead": int((want[:, 2] > 0).sum())}
+                                     "red_light_ahead": int((want[:, 2] > 0).sum()),
+                                     "pedestrians_ahead_s": 0.0}
     # Read back from the cache, the same.
     again = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True)[0]
     assert np.array_equal(again.hazard, train.hazard)
+    # Pedestrians where they will be: another cache; as near or nearer, the rest as it was.
+    ahead = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True, hazard_ahead_s=1.5)[0]
+    assert [p.name for p in (recorded / CACHE_DIR).glob("hazards-*.npy")] != [p.name for p in cached]
+    assert np.all(ahead.hazard[:, 0] >= train.hazard[:, 0]) and np.array_equal(ahead.hazard[:, 1:], train.hazard[:, 1:])
     assert "hazard" not in open_recordings(recorded, (48, 144), 0.5, 0)[0][0]
 
 

@@ -655,8 +655,12 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5"]))
     assert run.model.hazard and run.train.lambda_hazard == 0.5 and run.train.hazard_pos_weight == 1.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-pos-weight", "8"]))
-    assert run.train.hazard_pos_weight == 8.0
+    assert run.train.hazard_pos_weight == 8.0 and run.train.hazard_ahead_s == 0.0
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-ahead", "1.5"]))
+    assert run.train.hazard_ahead_s == 1.5
     for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
+                        (["--hazard", "1", "--hazard-ahead", "-1"], "in seconds, 0 to 5"),
+                        (["--hazard-ahead", "1"], "add --hazard WEIGHT"),
                         (["--synthetic", "--hazard", "-1"], "--hazard is the weight"),
                         (["--hazard", "1", "--hazard-pos-weight", "0.5"], "1 or more"),
                         (["--hazard-pos-weight", "8"], "add --hazard WEIGHT")):
