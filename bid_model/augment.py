@@ -11,6 +11,7 @@ of a sample get the same change, so the motion between them is what it was.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 
 # Ranges of the per-sample factors (1 leaves the frame as it is).
 BRIGHTNESS = (0.65, 1.35)
@@ -84,3 +85,23 @@ def mirror(frame: torch.Tensor, prev: torch.Tensor, command: torch.Tensor, targe
     command = torch.where(on.view(n, 1), command[:, list(MIRRORED_COMMAND)], command)
     target = torch.where(on.view(n, 1), target * torch.tensor([-1.0, 1.0], device=dev), target)
     return frame, prev, command, target
+
+
+def shift(frame: torch.Tensor, prev: torch.Tensor, pixels: int,
+          generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(frame, prev) uint8 (B, 3, H, W), each sample moved by its own whole number of pixels,
+    up to `pixels` each way, down or up and sideways, the edge rows and columns repeated into
+    what is uncovered (`bid train --shift PIXELS`). Frame t and t−1 move alike, so the motion
+    between them is what it was. A camera pitched or turned a little: the shipped SC lost a car
+    standing 2 m ahead that it saw in the same frame moved up by 4 rows (docs/experiments.md),
+    a detector of where things are in Town01's pictures rather than of what they are. No draws
+    when `pixels` is 0."""
+    if pixels <= 0:
+        return frame, prev
+    n, _, h, w = frame.shape
+    dy = torch.randint(-pixels, pixels + 1, (n,), generator=generator).tolist()
+    dx = torch.randint(-pixels, pixels + 1, (n,), generator=generator).tolist()
+    both = F.pad(torch.cat([frame, prev], dim=1).float(), (pixels,) * 4, mode="replicate")
+    out = torch.stack([both[i, :, pixels - dy[i]:pixels - dy[i] + h, pixels - dx[i]:pixels - dx[i] + w]
+                       for i in range(n)]).to(torch.uint8)
+    return out[:, :3].contiguous(), out[:, 3:].contiguous()

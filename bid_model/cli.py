@@ -66,6 +66,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="share of training samples mirrored left to right, commands and steering with "
                         "them (augment.mirror): for fitting a detector such as --train-only SC, since the "
                         "mirrored town drives on the left (0 by default)")
+    p.add_argument("--shift", type=int, default=None, metavar="PIXELS",
+                   help="move each training sample (frame t and t-1 alike) by up to PIXELS of the input "
+                        "down or up and sideways, as a camera pitched or turned a little (augment.shift; "
+                        "0 by default)")
     p.add_argument("--stop-keep", type=float, default=None, metavar="SHARE",
                    help="share of standing, braking frames trained on (recordings.balance_rows; small: 0.25)")
     p.add_argument("--motion-drop", type=float, default=None, metavar="SHARE",

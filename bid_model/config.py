@@ -126,6 +126,7 @@ class TrainConfig:
     motion_drop: float = 0.0  # share of training rows shown without motion (recordings.motion_dropout)
     augment: float = 0.0  # share of training samples given a random lighting change (augment.py)
     mirror: float = 0.0  # share of training samples mirrored left to right (augment.mirror)
+    shift: int = 0  # pixels each training sample is moved by at most, down or up and sideways (augment.shift)
     lambda_forecast: float = 0.0  # weight of the speed forecast's L1 loss (model.forecast_s)
     lambda_hazard: float = 0.0  # weight of the hazard head's L1 loss (model.hazard)
     # Weight, in that loss, of a frame with an actor of that kind in the path (train.hazard_loss).

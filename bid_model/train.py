@@ -46,7 +46,7 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler, Subset
 from tqdm import tqdm
 
-from bid_model.augment import mirror, photometric
+from bid_model.augment import mirror, photometric, shift
 from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_checkpoint
 from bid_model.config import (
     FORECAST_S,
@@ -487,6 +487,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
         inputs = (*inputs[:3], noisy_speed(inputs[3], tc.speed_noise))
         if tc.augment > 0:
             inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
+        if tc.shift > 0:
+            inputs = (*shift(inputs[0], inputs[1], tc.shift), *inputs[2:])
         if tc.mirror > 0:
             *flipped, target = mirror(*inputs[:3], target, tc.mirror)
             inputs = (*flipped, inputs[3])
@@ -820,7 +822,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
-             "--train-only": args.train_only}
+             "--shift": args.shift, "--train-only": args.train_only}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -861,6 +863,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
                 raise BidError(f"{flag} is a share of training rows, {'above 0' if field == 'stop_keep' else '0'} "
                                f"to 1; got {value}")
             tc = dataclasses.replace(tc, **{field: value})
+    if args.shift is not None:
+        rows = model.frame_hw[0]
+        if not 0 <= args.shift <= rows // 4:
+            raise BidError(f"--shift is in pixels, 0 to a quarter of the input's {rows} rows; got {args.shift}")
+        tc = dataclasses.replace(tc, shift=args.shift)
     if args.hard_brake is not None:
         tc = dataclasses.replace(tc, hard_brake=args.hard_brake)
     if args.accel_quantile is not None:

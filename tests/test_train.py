@@ -661,6 +661,7 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
                         (["--hazard", "1", "--hazard-ahead", "-1"], "in seconds, 0 to 5"),
                         (["--hazard-ahead", "1"], "add --hazard WEIGHT"),
+                        (["--shift", "40"], "a quarter of the input's"),
                         (["--synthetic", "--hazard", "-1"], "--hazard is the weight"),
                         (["--hazard", "1", "--hazard-pos-weight", "0.5"], "1 or more"),
                         (["--hazard-pos-weight", "8"], "add --hazard WEIGHT")):
@@ -747,6 +748,32 @@ def test_sc_fits_alone_beside_a_trained_head_and_gives_the_pedestrian_output(rec
         assert bid(["train", "--preset", "tiny", "--data", str(recorded), *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
+
+
+def test_shift_moves_both_frames_alike_and_repeats_the_edges():
+    from bid_model.augment import shift
+
+    frame = torch.randint(0, 256, (6, 3, 10, 30), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (6, 3, 10, 30), dtype=torch.uint8)
+    state = torch.get_rng_state()
+    assert shift(frame, prev, 0)[0] is frame and torch.equal(state, torch.get_rng_state())
+    gen = torch.Generator().manual_seed(3)
+    f, p = shift(frame, prev, 2, gen)
+    assert f.dtype == torch.uint8 and f.shape == frame.shape and p.shape == prev.shape
+    moved = 0
+    for i in range(6):
+        # Find the move: frame t's inside matches the original moved by (dy, dx), and t−1's by the same.
+        found = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)
+                 if torch.equal(f[i, :, 2:-2, 2:-2], frame[i, :, 2 - dy:8 - dy, 2 - dx:28 - dx])]
+        assert len(found) == 1
+        dy, dx = found[0]
+        assert torch.equal(p[i, :, 2:-2, 2:-2], prev[i, :, 2 - dy:8 - dy, 2 - dx:28 - dx])
+        if dy > 0:  # moved down: the top rows repeat the original's first row
+            assert torch.equal(f[i, :, 0, 2:-2], frame[i, :, 0, 2 - dx:28 - dx])
+        moved += (dy, dx) != (0, 0)
+    assert moved >= 4
+    again = shift(frame, prev, 2, torch.Generator().manual_seed(3))
+    assert torch.equal(again[0], f) and torch.equal(again[1], p)
 
 
 def test_mirror_flips_the_world_left_to_right_with_its_commands_and_steering():
