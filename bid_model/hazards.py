@@ -17,9 +17,9 @@ a stadium as wide as the box, close enough for a 4.6 m car beside a 3.5 m lane.
 With `ped_ahead_s` (`bid train --hazard-ahead S`) a pedestrian also counts where it will be: one
 that the recording shows in the path ahead of the ego within S seconds (looked at every
 AHEAD_STEP_S) is in the path now, at the distance from the ego's front to where it will be. A
-pedestrian about to step off the kerb or walking across the street a turn leads into is what
-the expert brakes for; in the path only by then, it is seen too late to stop (the BID's
-failures, docs/experiments.md).
+pedestrian about to step off the kerb, or walking across the street a turn leads into, is
+what the expert brakes for (within 3 s); by where it is now it enters the targets only as it
+steps into the corridor.
 """
 
 from __future__ import annotations

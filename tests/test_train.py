@@ -760,7 +760,7 @@ def test_shift_moves_both_frames_alike_and_repeats_the_edges():
     gen = torch.Generator().manual_seed(3)
     f, p = shift(frame, prev, 2, gen)
     assert f.dtype == torch.uint8 and f.shape == frame.shape and p.shape == prev.shape
-    moved = 0
+    moved = edges = 0
     for i in range(6):
         # Find the move: frame t's inside matches the original moved by (dy, dx), and t−1's by the same.
         found = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)
@@ -770,8 +770,9 @@ def test_shift_moves_both_frames_alike_and_repeats_the_edges():
         assert torch.equal(p[i, :, 2:-2, 2:-2], prev[i, :, 2 - dy:8 - dy, 2 - dx:28 - dx])
         if dy > 0:  # moved down: the top rows repeat the original's first row
             assert torch.equal(f[i, :, 0, 2:-2], frame[i, :, 0, 2 - dx:28 - dx])
+            edges += 1
         moved += (dy, dx) != (0, 0)
-    assert moved >= 4
+    assert moved >= 4 and edges >= 1
     again = shift(frame, prev, 2, torch.Generator().manual_seed(3))
     assert torch.equal(again[0], f) and torch.equal(again[1], p)
 
