@@ -112,30 +112,25 @@ def path_hazards(snaps: list[Snapshot], ped_ahead_s: float = 0.0) -> np.ndarray:
     # np.interp needs strictly increasing arc lengths: a standing ego repeats its pose.
     keep = np.r_[True, np.diff(s_ext) > 1e-6]
     xy_ext, s_ext = xy_ext[keep], s_ext[keep]
-    times = np.array([s.time_s for s in snaps])
-    offsets = AHEAD_STEP_S * np.arange(1, int(ped_ahead_s / AHEAD_STEP_S + 1e-9) + 1)
-    # The snapshot at each look ahead of each snapshot (-1: past the episode's end).
-    later = np.searchsorted(times, times[:, None] + offsets[None, :] - 1e-6)
-    later[later >= len(snaps)] = -1
-
-    def path_from(u: int) -> np.ndarray:
-        path = _path_points(xy_ext, s_ext, s_all[u])
-        path[0] = xy[u]  # the ego itself, not the first pose after a standstill's jitter
-        return path
-
     for t, snap in enumerate(snaps):
-        path = path_from(t)
+        path = _path_points(xy_ext, s_ext, s_all[t])
+        path[0] = xy[t]  # the ego itself, not the first pose after a standstill's jitter
         half_width = snap.ego.width_m / 2 + CORRIDOR_MARGIN_M
         front = snap.ego.length_m / 2
-        ped = _nearest_in_path(snap.pedestrians, path, half_width, front)
-        for u in later[t]:
-            if u < 0:
-                break
-            # Where the path ahead of the ego at u meets a pedestrian then, from the front at t.
-            found = _nearest_in_path(snaps[u].pedestrians, path_from(u), half_width, front)
-            if found < HAZARD_AHEAD_M:
-                ped = min(ped, float(min(s_all[u] - s_all[t] + found, HAZARD_AHEAD_M)))
-        out[t] = (ped, _nearest_in_path(snap.vehicles, path, half_width, front))
+        out[t] = (_nearest_in_path(snap.pedestrians, path, half_width, front),
+                  _nearest_in_path(snap.vehicles, path, half_width, front))
+    if ped_ahead_s > 0:
+        # Where the path ahead of the ego at a later snapshot u meets a pedestrian then is that
+        # snapshot's own target; counted from the front at t, it is the distance driven on top.
+        times = np.array([s.time_s for s in snaps])
+        offsets = AHEAD_STEP_S * np.arange(1, int(ped_ahead_s / AHEAD_STEP_S + 1e-9) + 1)
+        now = out[:, 0].copy()
+        for t in range(len(snaps)):
+            for u in np.searchsorted(times, times[t] + offsets - 1e-6):
+                if u >= len(snaps):
+                    break
+                if now[u] < HAZARD_AHEAD_M:
+                    out[t, 0] = min(out[t, 0], s_all[u] - s_all[t] + now[u], HAZARD_AHEAD_M)
     return out
 
 
