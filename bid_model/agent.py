@@ -55,14 +55,15 @@ def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
     return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
 
 
-def pedestrian_brake(nearness: float, speed_mps: float) -> float:
+def pedestrian_brake(nearness: float, speed_mps: float, hold_m: float = HOLD_M) -> float:
     """Braking, as a share of full braking (0..1), to stop STOP_SHORT_M short of a pedestrian
     the hazard head sees in the path at `nearness` (bid_model.recordings.hazard_nearness):
-    0 when it sees none; full while slow with one within HOLD_M, where the expert holds."""
+    0 when it sees none; full while slow with one within `hold_m` (HOLD_M, where the expert
+    holds)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
     dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
-    if speed_mps < START_MPS and dist_m < HOLD_M:
+    if speed_mps < START_MPS and dist_m < hold_m:
         return 1.0
     return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
 
@@ -164,6 +165,10 @@ class BIDAgent:
     path_memory: seconds; a pedestrian or vehicle seen in the path within REMEMBER_M is remembered
     this long once the hazard head loses it (PathMemory), for the brakes and move-off, and a
     vehicle within VEHICLE_HOLD_M holds a slow ego (`vehicle_brake`'s hold) (0: neither).
+    pedestrian_hold: metres; with hazard_brake, a pedestrian seen in the path within this keeps
+    a slow ego standing (HOLD_M when None; 0: never held, only stopped short of). A detector
+    that reads pedestrians waiting on the kerb as in the path 7-7.5 m off held the ego through
+    whole green phases at 8 m (docs/experiments.md).
     """
 
     uses_camera = True
@@ -171,7 +176,7 @@ class BIDAgent:
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
-                 move_off: float = 0.0, path_memory: float = 0.0):
+                 move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -197,6 +202,12 @@ class BIDAgent:
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
             raise BidError("path_memory is read by the brakes and move-off; add hazard_brake, vehicle_brake "
                            "or move_off, or drop it")
+        if pedestrian_hold is not None:
+            if not 0 <= pedestrian_hold <= HAZARD_AHEAD_M:
+                raise BidError(f"pedestrian_hold is a distance from 0 to {HAZARD_AHEAD_M:g} m; got {pedestrian_hold}")
+            if not hazard_brake:
+                raise BidError("pedestrian_hold is read by the pedestrian brake; add hazard_brake, or drop it")
+        self.pedestrian_hold_m = HOLD_M if pedestrian_hold is None else pedestrian_hold
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
@@ -245,7 +256,7 @@ class BIDAgent:
                 near = self.memory.update(near, v)
             if self.move_off_steps:
                 accel = self._move_off(accel, v, near)
-            need = max(self.hazard_brake * pedestrian_brake(near[0], v),
+            need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
                        self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None),
                        self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0)
             if need > 0:

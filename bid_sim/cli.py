@@ -134,11 +134,12 @@ def _evaluate(args: argparse.Namespace) -> int:
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
     brakes = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
               "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
-              "path_memory": args.path_memory}
+              "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
-    options = {k: v for k, v in brakes.items() if v} or None
+    # A hold of 0 means something (never hold), so it is kept where the other options' 0 is dropped.
+    options = {k: v for k, v in brakes.items() if v or (k == "pedestrian_hold" and v is not None)} or None
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
                        video=args.video, progress=not args.json, max_steps=args.max_steps,
@@ -296,6 +297,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "the path within 6 m counts for the brakes and move-off S seconds after the head "
                          "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
                          "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
+    ev.add_argument("--pedestrian-hold", type=float, default=None, metavar="M",
+                    help="--agent bid with --hazard-brake: a pedestrian seen in the path within M metres "
+                         "keeps an ego slower than 2 m/s standing (default 8, as the expert; 0: never "
+                         "held, only stopped 2 m short of) (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

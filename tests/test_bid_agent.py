@@ -163,6 +163,12 @@ def test_pedestrian_brake_stops_short_of_a_seen_pedestrian_and_holds_near_one():
     assert pedestrian_brake(0.8, 1.0) == 1.0  # 5 m off and slow: stay standing
     assert pedestrian_brake(0.8, 0.0) == 1.0
     assert pedestrian_brake(1.0, 12.0) == 1.0  # at the bumper: all it has
+    # A shorter hold (--pedestrian-hold): 7 m off and standing is no longer held, only stopped short of.
+    assert pedestrian_brake(0.72, 0.0) == 1.0
+    assert pedestrian_brake(0.72, 0.0, hold_m=6.0) == 0.0
+    assert pedestrian_brake(0.72, 1.5, hold_m=6.0) == pytest.approx(2.25 / 10 / 8)
+    assert pedestrian_brake(0.8, 1.0, hold_m=6.0) == 1.0  # 5 m off: held
+    assert pedestrian_brake(0.9, 0.0, hold_m=0.0) == pytest.approx(0.0)  # never held; standing asks nothing
 
 
 def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
@@ -283,6 +289,17 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         braking.reset(None)
         want = -pedestrian_brake(nearness, 6.0)
         assert braking.act(obs).accel == pytest.approx(min(free, want) if want < 0 else free, abs=1e-5)
+    # Standing with a pedestrian seen 7 m ahead: held at 8 m, not with --pedestrian-hold 6.
+    still = Observation(frame, frame, 4, 0.0, None)
+    short = BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, pedestrian_hold=6.0)
+    for agent in (plain, braking, short):
+        with torch.no_grad():
+            agent.model.hazard_head[-1].weight.zero_()
+            agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.72, 0.0, 0.0]))
+        agent.reset(None)
+    free_still = plain.act(still).accel
+    assert braking.act(still).accel == pytest.approx(-1.0)
+    assert short.act(still).accel == pytest.approx(free_still, abs=1e-5) and free_still > -1.0
     # A vehicle 2.5 m ahead (nearness 0.9 above) is braked for only with vehicle_brake.
     both = BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=0.5)
     with torch.no_grad():
@@ -339,7 +356,13 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         BIDAgent(tmp_path / "hz" / "last.pt", path_memory=3.0)
     with pytest.raises(BidError, match="path_memory must be 0 or more"):
         BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, path_memory=-1.0)
-    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off", "--path-memory"):
+    with pytest.raises(BidError, match="pedestrian_hold is read by the pedestrian brake"):
+        BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, pedestrian_hold=6.0)
+    for hold in (-1.0, 26.0, float("nan")):
+        with pytest.raises(BidError, match="pedestrian_hold is a distance from 0 to 25 m"):
+            BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, pedestrian_hold=hold)
+    for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off", "--path-memory",
+                 "--pedestrian-hold"):
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 
