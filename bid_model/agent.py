@@ -47,12 +47,20 @@ REMEMBER_M = 6.0
 # A remembered actor draws nearer by the distance driven, at most this far: a false sighting
 # 5 m ahead, drawn nearer by a creeping ego, held it standing in crowded traffic.
 MEMORY_CLOSE_M = 2.0
+# `max_speed`: above the cap the ego brakes this share of full braking per m/s over it.
+CRUISE_GAIN = 1.0
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
     """The share of full braking (0..1) that stops the ego `short_m` before `dist_m` ahead."""
     gap = max(dist_m - short_m, 0.5)
     return min(speed_mps * speed_mps / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
+
+
+def cruise_brake(speed_mps: float, max_speed_mps: float) -> float:
+    """Braking, as a share of full braking (0..1), that brings an ego faster than
+    `max_speed_mps` back to it: CRUISE_GAIN per m/s over; 0 at or below it."""
+    return min(max(speed_mps - max_speed_mps, 0.0) * CRUISE_GAIN, 1.0)
 
 
 def pedestrian_brake(nearness: float, speed_mps: float, hold_m: float = HOLD_M) -> float:
@@ -169,6 +177,9 @@ class BIDAgent:
     a slow ego standing (HOLD_M when None; 0: never held, only stopped short of). A detector
     that reads pedestrians waiting on the kerb as in the path 7-7.5 m off held the ego through
     whole green phases at 8 m (docs/experiments.md).
+    max_speed: m/s; brake by `cruise_brake` whenever the ego is faster (0: no cap). The
+    network slows for a bend it sees too late at Town02's 11.2 m/s limit under the sunset
+    weathers, and drives on past it (docs/experiments.md).
     """
 
     uses_camera = True
@@ -176,7 +187,8 @@ class BIDAgent:
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
-                 move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None):
+                 move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None,
+                 max_speed: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -208,6 +220,9 @@ class BIDAgent:
             if not hazard_brake:
                 raise BidError("pedestrian_hold is read by the pedestrian brake; add hazard_brake, or drop it")
         self.pedestrian_hold_m = HOLD_M if pedestrian_hold is None else pedestrian_hold
+        if not 0 <= max_speed < 100:
+            raise BidError(f"max_speed is a speed in m/s, 0 (no cap) or more; got {max_speed}")
+        self.max_speed = max_speed
         if lesions:
             self.model.set_lesions(dict(lesions))
         self.hw = tuple(self.config.model.frame_hw)
@@ -238,10 +253,8 @@ class BIDAgent:
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0)
-        if not (by_forecast or by_hazard):
-            out = self.model(frame, prev, cmd, speed)[0]
-            return Control(steer=float(out[0]), accel=float(out[1]))
-        control, *extra = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard)
+        out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard)
+        control, *extra = out if isinstance(out, tuple) else (out,)
         accel, v = float(control[0, 1]), float(obs.speed_mps)
         if by_forecast:
             ahead = extra.pop(0)
@@ -261,6 +274,8 @@ class BIDAgent:
                        self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0)
             if need > 0:
                 accel = min(accel, -need)
+        if self.max_speed > 0 and v > self.max_speed:
+            accel = min(accel, -cruise_brake(v, self.max_speed))
         return Control(steer=float(control[0, 0]), accel=max(accel, -1.0))
 
     def _move_off(self, accel: float, speed_mps: float, near: tuple[float, ...]) -> float:

@@ -153,6 +153,34 @@ def test_forecast_brake_brakes_to_the_forecast_speed(checkpoint, tmp_path, capsy
     assert "option of --agent bid" in capsys.readouterr().err
 
 
+def test_max_speed_brakes_an_ego_faster_than_the_cap(checkpoint, tmp_path, capsys):
+    """With max_speed the agent brakes 1 share of full braking per m/s over the cap, with or
+    without the other brakes; at or below it, the control head drives as without it."""
+    import math
+
+    import numpy as np
+
+    from bid_model.agent import cruise_brake
+    from bid_sim.agents import Observation
+
+    assert cruise_brake(8.0, 9.0) == cruise_brake(9.0, 9.0) == 0.0
+    assert cruise_brake(9.5, 9.0) == pytest.approx(0.5) and cruise_brake(12.0, 9.0) == 1.0
+    frame = np.random.default_rng(1).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    plain, capped = BIDAgent(checkpoint), BIDAgent(checkpoint, max_speed=9.0)
+    for speed, brake in ((5.0, 0.0), (9.0, 0.0), (9.25, 0.25), (11.0, 1.0)):
+        plain.reset(None)
+        capped.reset(None)
+        head = plain.act(Observation(frame, frame, 4, speed, None))
+        got = capped.act(Observation(frame, frame, 4, speed, None))
+        assert got.steer == head.steer
+        assert got.accel == pytest.approx(min(head.accel, -brake) if brake else head.accel, abs=1e-6)
+    for bad in (-1.0, math.nan, 1e3):
+        with pytest.raises(BidError, match="max_speed is a speed in m/s"):
+            BIDAgent(checkpoint, max_speed=bad)
+    assert main(["evaluate", "--agent", "expert", "--max-speed", "9", "--out", str(tmp_path / "x")]) == 2
+    assert "--max-speed is an option of --agent bid" in capsys.readouterr().err
+
+
 def test_pedestrian_brake_stops_short_of_a_seen_pedestrian_and_holds_near_one():
     from bid_model.agent import pedestrian_brake
 
