@@ -267,11 +267,12 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
     flags = next(ln for ln in makefile if ln.startswith("SHIPPED_DRIVE :=")).split(":=", 1)[1].split()
     options = {flag.removeprefix("--").replace("-", "_"): float(value)
                for flag, value in zip(flags[::2], flags[1::2], strict=True)}
-    assert set(options) == {"vehicle_brake", "light_brake", "move_off", "hazard_brake", "pedestrian_hold"}
+    assert set(options) == {"vehicle_brake", "light_brake", "move_off", "hazard_brake", "pedestrian_hold",
+                            "max_speed"}
     shipped = root / "checkpoints" / "bid_small.pt"
     agent = BIDAgent(shipped, **options)
     assert agent.vehicle_brake == agent.light_brake == agent.hazard_brake == 1.0 and agent.move_off_steps == 80
-    assert agent.pedestrian_hold_m == 6.0
+    assert agent.pedestrian_hold_m == 6.0 and agent.max_speed == 9.0
     assert agent.config.model.hazard_sc
     plain = BIDAgent(shipped)
     frame, prev = torch.randint(0, 256, (2, 1, 3, *plain.hw), dtype=torch.uint8,
