@@ -274,12 +274,14 @@ class SC(nn.Module):
     priority map per kind of frame t and its change since t−1, read at its peak: how near a
     pedestrian and a vehicle in the path are (with ModelConfig.hazard_sc the hazard head's first
     two outputs are the nearer of its own and these). It never sees the speed, so it cannot read
-    "fast, so nothing near"."""
+    "fast, so nothing near". With `presence`, a second map per kind says whether one is in the
+    path there (a logit), and the nearness is read where that map peaks."""
 
     def __init__(self, frame_hw: tuple[int, int], n_commands: int, kinds: int = 2,
-                 widths: tuple[int, int, int] = (16, 32, 64)):
+                 widths: tuple[int, int, int] = (16, 32, 64), presence: bool = False):
         super().__init__()
         a, b, c = widths
+        self.kinds, self.presence = kinds, presence
         # 5×5 stride 2, then two stride-2 stages each with a 3×3 after: an eighth of the input,
         # a grid cell of 8×8 pixels (a person 10 m off is 3 pixels wide in a 64×192 frame).
         self.retina = nn.Sequential(
@@ -290,14 +292,22 @@ class SC(nn.Module):
         rows, cols = half(half(half(frame_hw[0]))), half(half(half(frame_hw[1])))
         self.position = nn.Parameter(torch.zeros(1, c, rows, cols))
         self.command = nn.Linear(n_commands, c)  # where the path goes depends on the command
-        self.priority = nn.Sequential(nn.Conv2d(c, c, 1), nn.ReLU(inplace=True), nn.Conv2d(c, kinds, 1))
+        maps = kinds * (2 if presence else 1)
+        self.priority = nn.Sequential(nn.Conv2d(c, c, 1), nn.ReLU(inplace=True), nn.Conv2d(c, maps, 1))
 
     def priority_map(self, frame_t: torch.Tensor, frame_prev: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
-        """(B, kinds, rows, cols): the nearness each cell of the grid reads (normalised frames in)."""
+        """(B, kinds, rows, cols): the nearness each cell of the grid reads (normalised frames in);
+        with `presence` (B, 2·kinds, rows, cols): the nearness maps, then the presence logits'."""
         x = self.retina(torch.cat([frame_t, frame_t - frame_prev], dim=1))
         x = torch.relu(x + self.position + self.command(command)[:, :, None, None])
         return self.priority(x)
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor, command: torch.Tensor) -> torch.Tensor:
-        """(B, kinds): each priority map's peak."""
-        return self.priority_map(frame_t, frame_prev, command).flatten(2).amax(dim=2)
+        """(B, kinds): each priority map's peak; with `presence` (B, 2·kinds): the nearness read
+        where each kind's presence map peaks, then that peak, the logit that one is in the path."""
+        maps = self.priority_map(frame_t, frame_prev, command).flatten(2)
+        if not self.presence:
+            return maps.amax(dim=2)
+        near, logit = maps[:, :self.kinds], maps[:, self.kinds:]
+        peak, where = logit.max(dim=2, keepdim=True)
+        return torch.cat([near.gather(2, where).squeeze(2), peak.squeeze(2)], dim=1)

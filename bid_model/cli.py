@@ -50,6 +50,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard, weigh each frame with a pedestrian (vehicle) in the path W times "
                         "in the head's pedestrian (vehicle) loss, so that a rare kind is not fitted as "
                         "'none' (1 by default)")
+    p.add_argument("--hazard-turn-weight", type=float, default=None, metavar="W",
+                   help="with --hazard, weigh a frame with a pedestrian in the path W times more where "
+                        "the command is a turn (LEFT or RIGHT, as shown, mirrored or not): turning, the "
+                        "ego meets pedestrians crossing the street it turns into beside others waiting "
+                        "on the kerb (1 by default)")
     p.add_argument("--hazard-ahead", type=float, default=None, metavar="S",
                    help="with --hazard, a pedestrian counts in the path also where the recording shows it "
                         "in the path ahead of the ego within S seconds, so that one about to walk in is "
@@ -62,6 +67,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "change (never the speed), read at the peaks of its priority maps "
                         "(bid_model/areas.py); the pedestrian and vehicle outputs are the nearer of the "
                         "head's and SC's")
+    p.add_argument("--sc-presence", action="store_true", default=None,
+                   help="with --hazard-sc, SC also says whether one is in the path at all (a logit per "
+                        "kind, fitted by cross-entropy weighted as --hazard-pos-weight and "
+                        "--hazard-turn-weight say) and its nearness is fitted only where one is: it "
+                        "reads a nearness where it says yes, none elsewhere")
     p.add_argument("--mirror", type=float, default=None, metavar="SHARE",
                    help="share of training samples mirrored left to right, commands and steering with "
                         "them (augment.mirror): for fitting a detector such as --train-only SC, since the "

@@ -26,7 +26,8 @@ VARIANTS: dict[str, dict[str, bool]] = {
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
-INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc"}
+INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc",
+                                    "sc_presence"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -82,6 +83,10 @@ class ModelConfig:
     # SC (areas.SC), a shallow pathway on the full input frames beside the cortex, says it too:
     # the pedestrian and vehicle outputs are the nearer of the head's and SC's (BID.forward_hazard).
     hazard_sc: bool = False
+    # SC says also whether one is in the path at all, a presence logit per kind fitted apart from
+    # its nearness (areas.SC): it reads a nearness only where it says yes, rather than the
+    # blend of "none" and "near" an L1 fit on both gives an actor it is unsure of.
+    sc_presence: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -95,6 +100,8 @@ class ModelConfig:
             raise ValueError("relations (DPC) need the dorsal stream (MT)")
         if self.hazard_sc and not self.hazard:
             raise ValueError("hazard_sc (SC) reads beside the hazard head: it needs hazard")
+        if self.sc_presence and not self.hazard_sc:
+            raise ValueError("sc_presence is a part of SC: it needs hazard_sc")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 
@@ -131,6 +138,8 @@ class TrainConfig:
     lambda_hazard: float = 0.0  # weight of the hazard head's L1 loss (model.hazard)
     # Weight, in that loss, of a frame with an actor of that kind in the path (train.hazard_loss).
     hazard_pos_weight: float = 1.0
+    # Further weight of a frame with a pedestrian in the path while turning (train.hazard_loss).
+    hazard_turn_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)

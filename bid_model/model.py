@@ -156,7 +156,8 @@ class BID(nn.Module):
             self.hazard_head = nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
                                              nn.Linear(c.cpc_hidden[1], self.hazard_kinds()))
         # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
-        self.hazard_sc = SC(c.frame_hw, c.n_commands, len(PATH_KINDS)) if c.hazard_sc else None
+        self.hazard_sc = (SC(c.frame_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
+                          if c.hazard_sc else None)
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
@@ -288,8 +289,10 @@ class BID(nn.Module):
         """(batch, hazard_kinds()): nearness of the nearest (pedestrian, vehicle) in the path and,
         with config.hazard_light, of a red light's stop line, from MPC's tokens (and with
         config.hazard_attend from V2's and V4's grids too; with config.hazard_sc the
-        pedestrian's and the vehicle's are the larger of the head's and SC's; with `apart` the
-        head's outputs then SC's, (batch, hazard_kinds() + 2), so that training fits each alone)."""
+        pedestrian's and the vehicle's are the larger of the head's and SC's, SC's with
+        config.sc_presence only where its logit says one is in the path; with `apart` the head's
+        outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
+        then its logits), so that training fits each alone)."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
         if self.config.hazard_attend:
@@ -300,6 +303,8 @@ class BID(nn.Module):
             sc, k = features["SC"].to(near.dtype), len(PATH_KINDS)
             if apart:
                 return torch.cat([near, sc], dim=1)
+            if self.config.sc_presence:  # its nearness where it says one is in the path, else none
+                sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
             near = torch.cat([torch.maximum(near[:, :k], sc), near[:, k:]], dim=1)
         return near
 

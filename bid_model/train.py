@@ -62,6 +62,7 @@ from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M, PATH_KINDS, SEEN_NE
 from bid_model.model import BID, SPEED_SCALE_MPS, hazard_kinds, resize_grid_tokens
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
+from bid_sim.routes import LEFT, RIGHT
 from bid_sim.world import DT_S
 
 log = logging.getLogger(__name__)
@@ -135,14 +136,45 @@ def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Ten
     return ((pred_mps.float() - target_mps) / SPEED_SCALE_MPS).abs().mean()
 
 
-def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0) -> torch.Tensor:
-    """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
-    batch and both kinds, an entry with an actor in the path (target > 0) weighted
-    `pos_weight`. Pedestrians are in the path in about 6 % of frames: under plain L1 (the
-    median) the head says "none" wherever it is less than sure, and with weight w it says
-    how near one is wherever it judges the odds above 1 / (1 + w)."""
+def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: float = 1.0,
+                   command: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, K) weights of the hazard targets' entries: one with an actor in the path (target > 0)
+    weighs `pos_weight`; with `command` (B, n one-hot) a pedestrian in the path while turning
+    (LEFT, RIGHT) `turn_weight` times more again."""
     weight = torch.where(target > 0, pos_weight, 1.0)
+    if command is not None and turn_weight != 1.0:
+        turning = command[:, [LEFT - 1, RIGHT - 1]].sum(dim=1) > 0  # one-hot column = command − 1
+        crossing = (target[:, KINDS.index("pedestrian")] > 0) & turning
+        weight[:, KINDS.index("pedestrian")] *= torch.where(crossing, turn_weight, 1.0)
+    return weight
+
+
+def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
+                turn_weight: float = 1.0, command: torch.Tensor | None = None) -> torch.Tensor:
+    """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
+    batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
+    about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
+    than sure, and with weight w it says how near one is wherever it judges the odds above
+    1 / (1 + w). `turn_weight` weighs the pedestrians met turning more again: most of those
+    the ego meets turning wait on the kerb beside the path."""
+    weight = hazard_weights(target, pos_weight, turn_weight, command)
     return (weight * (pred.float() - target).abs()).sum() / weight.sum()
+
+
+def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
+                  turn_weight: float = 1.0, command: torch.Tensor | None = None) -> torch.Tensor:
+    """Loss of SC with presence (areas.SC; out (B, 2K): nearness, then logits) against the
+    nearness targets (B, K): the logits' binary cross-entropy on "one is in the path", its
+    entries weighted by hazard_weights (it says yes where it judges the odds above 1 / (1 +
+    w)), plus the nearness' L1 error on the entries with one in the path only: how near one is,
+    given that it is there, not a blend of "none" and "near"."""
+    k = target.shape[1]
+    near, logit = out[:, :k].float(), out[:, k:].float()
+    present = target > 0
+    weight = hazard_weights(target, pos_weight, turn_weight, command)
+    bce = nn.functional.binary_cross_entropy_with_logits(logit, present.float(), reduction="none")
+    distance = (near - target).abs()[present].mean() if present.any() else near.sum() * 0.0
+    return (weight * bce).sum() / weight.sum() + distance
 
 
 def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, float | None]]:
@@ -501,11 +533,13 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
         if hazard is not None:
             near = batch["hazard"].to(device)
-            own = hazard.shape[1] - (len(PATH_KINDS) if apart else 0)  # the head's outputs, then SC's
-            loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], tc.hazard_pos_weight)
+            k = len(PATH_KINDS)
+            own = hazard.shape[1] - (k * (1 + base.config.sc_presence) if apart else 0)  # the head's, then SC's
+            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2])
+            loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if apart:
-                loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, own:], near[:, :len(PATH_KINDS)],
-                                                             tc.hazard_pos_weight)
+                sc_loss = presence_loss if base.config.sc_presence else hazard_loss
+                loss = loss + tc.lambda_hazard * sc_loss(hazard[:, own:], near[:, :k], *weights)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -819,8 +853,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
-             "--hazard-ahead": args.hazard_ahead,
+             "--hazard-turn-weight": args.hazard_turn_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
+             "--sc-presence": args.sc_presence,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
     if args.resume:
@@ -897,6 +932,13 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard:
             raise BidError("--hazard-pos-weight weighs the hazard head's loss: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, hazard_pos_weight=args.hazard_pos_weight)
+    if args.hazard_turn_weight is not None:
+        if not args.hazard_turn_weight >= 1:
+            raise BidError(f"--hazard-turn-weight weighs pedestrians in the path while turning, 1 or more; "
+                           f"got {args.hazard_turn_weight}")
+        if not model.hazard:
+            raise BidError("--hazard-turn-weight weighs the hazard head's loss: add --hazard WEIGHT")
+        tc = dataclasses.replace(tc, hazard_turn_weight=args.hazard_turn_weight)
     if args.hazard_ahead is not None:
         if not 0 <= args.hazard_ahead <= MAX_HAZARD_AHEAD_S:
             raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {args.hazard_ahead}")
@@ -911,6 +953,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard:
             raise BidError("--hazard-sc (SC) reads beside the hazard head: add --hazard WEIGHT")
         model = dataclasses.replace(model, hazard_sc=True)
+    if args.sc_presence:
+        if not model.hazard_sc:
+            raise BidError("--sc-presence is a part of SC: add --hazard-sc (and --hazard WEIGHT)")
+        model = dataclasses.replace(model, sc_presence=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

@@ -644,6 +644,37 @@ def test_hazard_pos_weight_makes_a_rare_hazard_worth_reporting():
     assert hazard_loss(pred, target) == pytest.approx(float((pred - target).abs().mean()))
 
 
+def test_hazard_turn_weight_weighs_pedestrians_met_turning():
+    """--hazard-turn-weight: a pedestrian in the path while the command is LEFT or RIGHT weighs
+    that much more, on top of --hazard-pos-weight; one met going straight, a vehicle met
+    turning and a turn with nobody in the path weigh as before."""
+    from bid_model.data import command_one_hot
+    from bid_model.train import hazard_loss
+
+    target = torch.tensor([[0.6, 0.0], [0.6, 0.0], [0.0, 0.5], [0.0, 0.0]])
+    command = command_one_hot([2, 3, 1, 1])  # RIGHT, STRAIGHT, LEFT, LEFT
+    pred = torch.zeros(4, 2)
+    # Entries' weights: pedestrian column 2·3, 2, 1, 1; vehicle column 1, 1, 2, 1.
+    want = (0.6 * 6 + 0.6 * 2 + 0.5 * 2) / (6 + 2 + 1 + 1 + 1 + 1 + 2 + 1)
+    assert hazard_loss(pred, target, 2.0, 3.0, command) == pytest.approx(want)
+    assert hazard_loss(pred, target, 2.0, 1.0, command) == pytest.approx(hazard_loss(pred, target, 2.0))
+    # Fitted as a constant per turning row, the pedestrian met turning is reported only when weighed up.
+    many = torch.tensor([[0.6, 0.0]] * 2 + [[0.0, 0.0]] * 8)
+    turning = command_one_hot([2] * 10)
+
+    def fitted(turn_weight: float) -> float:
+        c = torch.zeros(1, 2, requires_grad=True)
+        opt = torch.optim.SGD([c], lr=0.01)
+        for _ in range(400):
+            opt.zero_grad()
+            hazard_loss(c.expand_as(many), many, 1.0, turn_weight, turning).backward()
+            opt.step()
+        return float(c.detach()[0, 0])
+
+    assert fitted(1.0) == pytest.approx(0.0, abs=0.02)
+    assert fitted(8.0) == pytest.approx(0.6, abs=0.02)
+
+
 def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     import argparse
 
@@ -656,6 +687,9 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     assert run.model.hazard and run.train.lambda_hazard == 0.5 and run.train.hazard_pos_weight == 1.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-pos-weight", "8"]))
     assert run.train.hazard_pos_weight == 8.0 and run.train.hazard_ahead_s == 0.0
+    assert run.train.hazard_turn_weight == 1.0
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-turn-weight", "3"]))
+    assert run.train.hazard_turn_weight == 3.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-ahead", "1.5"]))
     assert run.train.hazard_ahead_s == 1.5
     for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
@@ -664,7 +698,9 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
                         (["--shift", "40"], "a quarter of the input's"),
                         (["--synthetic", "--hazard", "-1"], "--hazard is the weight"),
                         (["--hazard", "1", "--hazard-pos-weight", "0.5"], "1 or more"),
-                        (["--hazard-pos-weight", "8"], "add --hazard WEIGHT")):
+                        (["--hazard-pos-weight", "8"], "add --hazard WEIGHT"),
+                        (["--hazard", "1", "--hazard-turn-weight", "0"], "1 or more"),
+                        (["--hazard-turn-weight", "3"], "add --hazard WEIGHT")):
         assert bid(["train", "--preset", "tiny", *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
@@ -748,6 +784,56 @@ def test_sc_fits_alone_beside_a_trained_head_and_gives_the_pedestrian_output(rec
         assert bid(["train", "--preset", "tiny", "--data", str(recorded), *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
+
+
+def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(recorded, tmp_path, capsys):
+    """--sc-presence: SC's second map per kind is a logit that one is in the path; its nearness
+    is read where that map peaks, and counts only where the logit is above 0. Started from a
+    run with plain SC, everything but SC's last layer carries over; training fits the logits by
+    cross-entropy and the nearness only where one is in the path."""
+    from bid_model.areas import SC
+    from bid_model.train import presence_loss
+
+    sc = SC((32, 96), 6, 2, presence=True).eval()
+    frame, prev = torch.randn(3, 3, 32, 96), torch.randn(3, 3, 32, 96)
+    cmd = torch.eye(6)[[0, 1, 3]]
+    with torch.no_grad():
+        out, maps = sc(frame, prev, cmd), sc.priority_map(frame, prev, cmd).flatten(2)
+    where = maps[:, 2:].argmax(dim=2)
+    assert out.shape == (3, 4) and torch.equal(out[:, 2:], maps[:, 2:].amax(dim=2))
+    assert torch.equal(out[:, :2], maps[:, :2].gather(2, where[:, :, None]).squeeze(2))
+
+    # The loss: the nearness is fitted on the entries with one in the path only.
+    target = torch.tensor([[0.6, 0.0], [0.0, 0.4]])
+    out = torch.tensor([[0.6, 0.9, 3.0, -3.0], [0.1, 0.4, -3.0, 3.0]], requires_grad=True)
+    presence_loss(out, target).backward()
+    assert out.grad[0, 1] == 0 and out.grad[1, 0] == 0  # no nearness fitted where nobody is
+    assert out.grad[0, 2] < 0 and out.grad[0, 3] > 0  # yes where one is, no where none is
+
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--hazard", "1", "--hazard-sc", "--out", str(tmp_path / "sc")]) == 0
+    assert bid([*base, "--init", str(tmp_path / "sc" / "last.pt"), "--hazard", "1", "--hazard-sc",
+                "--sc-presence", "--hazard-pos-weight", "4", "--hazard-turn-weight", "2", "--train-only", "SC",
+                "--out", str(tmp_path / "pr")]) == 0
+    start, tuned = load_checkpoint(tmp_path / "sc" / "last.pt"), load_checkpoint(tmp_path / "pr" / "last.pt")
+    assert tuned["config"]["model"]["sc_presence"] and tuned["config"]["train"]["hazard_turn_weight"] == 2.0
+    assert tuned["model"]["hazard_sc.priority.2.weight"].shape[0] == 4
+    assert all(torch.equal(v, tuned["model"][k]) for k, v in start["model"].items()
+               if not k.startswith("hazard_sc."))  # only SC moved
+    model, _ = load_model(tmp_path / "pr" / "last.pt", preset="tiny")
+    frame = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 1, 2, 3]]
+    with torch.no_grad():
+        near = model(frame, prev, cmd, hazard=True)[1]
+        apart = model(frame, prev, cmd, hazard=True, hazard_apart=True)[1]
+    assert apart.shape == (4, 7)  # the head's three, SC's two nearnesses, SC's two logits
+    gated = torch.where(apart[:, 5:] > 0, apart[:, 3:5], torch.zeros(4, 2))
+    assert torch.allclose(near[:, :2], torch.maximum(apart[:, :2], gated))
+    assert torch.allclose(near[:, 2:], apart[:, 2:3])
+    assert bid([*base, "--hazard", "1", "--sc-presence", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "add --hazard-sc" in err and "\n" not in err
 
 
 def test_shift_moves_both_frames_alike_and_repeats_the_edges():
