@@ -155,8 +155,8 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
     batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
     about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
     than sure, and with weight w it says how near one is wherever it judges the odds above
-    1 / (1 + w). `turn_weight` weighs the pedestrians met turning more again: most of those
-    the ego meets turning wait on the kerb beside the path."""
+    1 / (1 + w). `turn_weight` weighs the pedestrians in the path while turning more again:
+    turning, the ego meets many more waiting on the kerb beside its path than in it."""
     weight = hazard_weights(target, pos_weight, turn_weight, command)
     return (weight * (pred.float() - target).abs()).sum() / weight.sum()
 
@@ -926,14 +926,14 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         model = dataclasses.replace(model, hazard=args.hazard > 0, hazard_light=args.hazard > 0)
         tc = dataclasses.replace(tc, lambda_hazard=args.hazard)
     if args.hazard_pos_weight is not None:
-        if not args.hazard_pos_weight >= 1:
+        if not 1 <= args.hazard_pos_weight < math.inf:
             raise BidError(f"--hazard-pos-weight weighs frames with an actor in the path, 1 or more; "
                            f"got {args.hazard_pos_weight}")
         if not model.hazard:
             raise BidError("--hazard-pos-weight weighs the hazard head's loss: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, hazard_pos_weight=args.hazard_pos_weight)
     if args.hazard_turn_weight is not None:
-        if not args.hazard_turn_weight >= 1:
+        if not 1 <= args.hazard_turn_weight < math.inf:
             raise BidError(f"--hazard-turn-weight weighs pedestrians in the path while turning, 1 or more; "
                            f"got {args.hazard_turn_weight}")
         if not model.hazard:

@@ -700,6 +700,8 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
                         (["--hazard", "1", "--hazard-pos-weight", "0.5"], "1 or more"),
                         (["--hazard-pos-weight", "8"], "add --hazard WEIGHT"),
                         (["--hazard", "1", "--hazard-turn-weight", "0"], "1 or more"),
+                        (["--hazard", "1", "--hazard-turn-weight", "inf"], "1 or more"),
+                        (["--hazard", "1", "--hazard-pos-weight", "nan"], "1 or more"),
                         (["--hazard-turn-weight", "3"], "add --hazard WEIGHT")):
         assert bid(["train", "--preset", "tiny", *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
