@@ -925,20 +925,17 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
             raise BidError(f"--hazard is the weight of the hazard head's loss, 0 or more; got {args.hazard}")
         model = dataclasses.replace(model, hazard=args.hazard > 0, hazard_light=args.hazard > 0)
         tc = dataclasses.replace(tc, lambda_hazard=args.hazard)
-    if args.hazard_pos_weight is not None:
-        if not 1 <= args.hazard_pos_weight < math.inf:
-            raise BidError(f"--hazard-pos-weight weighs frames with an actor in the path, 1 or more; "
-                           f"got {args.hazard_pos_weight}")
+    for flag, field, weighs in (("--hazard-pos-weight", "hazard_pos_weight", "frames with an actor in the path"),
+                                ("--hazard-turn-weight", "hazard_turn_weight",
+                                 "pedestrians in the path while turning")):
+        weight = getattr(args, field)
+        if weight is None:
+            continue
+        if not 1 <= weight < math.inf:
+            raise BidError(f"{flag} weighs {weighs}, 1 or more; got {weight}")
         if not model.hazard:
-            raise BidError("--hazard-pos-weight weighs the hazard head's loss: add --hazard WEIGHT")
-        tc = dataclasses.replace(tc, hazard_pos_weight=args.hazard_pos_weight)
-    if args.hazard_turn_weight is not None:
-        if not 1 <= args.hazard_turn_weight < math.inf:
-            raise BidError(f"--hazard-turn-weight weighs pedestrians in the path while turning, 1 or more; "
-                           f"got {args.hazard_turn_weight}")
-        if not model.hazard:
-            raise BidError("--hazard-turn-weight weighs the hazard head's loss: add --hazard WEIGHT")
-        tc = dataclasses.replace(tc, hazard_turn_weight=args.hazard_turn_weight)
+            raise BidError(f"{flag} weighs the hazard head's loss: add --hazard WEIGHT")
+        tc = dataclasses.replace(tc, **{field: weight})
     if args.hazard_ahead is not None:
         if not 0 <= args.hazard_ahead <= MAX_HAZARD_AHEAD_S:
             raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {args.hazard_ahead}")
