@@ -47,6 +47,11 @@ REMEMBER_M = 6.0
 # A remembered actor draws nearer by the distance driven, at most this far: a false sighting
 # 5 m ahead, drawn nearer by a creeping ego, held it standing in crowded traffic.
 MEMORY_CLOSE_M = 2.0
+# `crossing_brake`: stop this far short of a crossing with a pedestrian on it, as the expert does.
+CROSSING_SHORT_M = 2.0
+# ...and keep a slow (< START_MPS) ego standing while one is seen this close: at a red light the
+# ego stands 1 m short of the stop line, the crossing a few metres on.
+CROSSING_HOLD_M = 6.0
 # `max_speed`: above the cap the ego brakes this share of full braking per m/s over it.
 CRUISE_GAIN = 1.0
 
@@ -88,6 +93,19 @@ def light_brake(nearness: float, speed_mps: float) -> float:
     if nearness < SEEN_NEARNESS:
         return 0.0
     return _binding(_stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, LIGHT_SHORT_M))
+
+
+def crossing_brake(nearness: float, speed_mps: float) -> float:
+    """Braking (0..1) to stop CROSSING_SHORT_M short of the crossing with a pedestrian on it the
+    hazard head sees at `nearness` (hazards.crossing_distances), once that takes BIND_SHARE or
+    more; full while slow with one within CROSSING_HOLD_M, so that a light turning green does not
+    move the ego off into people still on the stripes."""
+    if nearness < SEEN_NEARNESS:
+        return 0.0
+    dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+    if speed_mps < START_MPS and dist_m < CROSSING_HOLD_M:
+        return 1.0
+    return _binding(_stop_short(dist_m, speed_mps, CROSSING_SHORT_M))
 
 
 def vehicle_brake(nearness: float, speed_mps: float, hold: bool = False) -> float:
@@ -177,6 +195,8 @@ class BIDAgent:
     a slow ego standing (HOLD_M when None; 0: never held, only stopped short of). A detector
     that reads pedestrians waiting on the kerb as in the path 7-7.5 m off held the ego through
     whole green phases at 8 m (docs/experiments.md).
+    crossing_brake: for a model trained with `--hazard-crossing`, brake at least this gain times as
+    hard as `crossing_brake` asks for the crossing with a pedestrian on it the head sees ahead.
     max_speed: m/s; brake by `cruise_brake` whenever the ego is faster (0: no cap). The
     network slows for a bend it sees too late at Town02's 11.2 m/s limit under the sunset
     weathers, and drives on past it (docs/experiments.md).
@@ -188,7 +208,7 @@ class BIDAgent:
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
                  move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None,
-                 max_speed: float = 0.0):
+                 max_speed: float = 0.0, crossing_brake: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if not forecast_brake >= 0:
@@ -198,7 +218,8 @@ class BIDAgent:
                            "or drop forecast_brake")
         self.forecast_brake = forecast_brake
         for name, gain in (("hazard_brake", hazard_brake), ("vehicle_brake", vehicle_brake),
-                           ("light_brake", light_brake), ("move_off", move_off), ("path_memory", path_memory)):
+                           ("light_brake", light_brake), ("move_off", move_off), ("path_memory", path_memory),
+                           ("crossing_brake", crossing_brake)):
             if not gain >= 0:
                 raise BidError(f"{name} must be 0 or more; got {gain}")
             if gain > 0 and not self.config.model.hazard:
@@ -208,7 +229,11 @@ class BIDAgent:
             if value > 0 and not self.config.model.hazard_light:
                 raise BidError(f"{checkpoint}'s hazard head has no red-light output (trained before it existed); "
                                f"train one with --hazard, or drop {name}")
+        if crossing_brake > 0 and not self.config.model.hazard_crossing:
+            raise BidError(f"{checkpoint}'s hazard head has no crossing output; train one with --hazard-crossing, "
+                           "or drop crossing_brake")
         self.hazard_brake, self.vehicle_brake, self.light_brake = hazard_brake, vehicle_brake, light_brake
+        self.crossing_brake = crossing_brake
         self.move_off_steps = round(move_off / DT_S) if move_off > 0 else 0
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -252,7 +277,7 @@ class BIDAgent:
         self._inputs = (frame, prev, cmd, speed)
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
-                     or self.move_off_steps > 0)
+                     or self.move_off_steps > 0 or self.crossing_brake > 0)
         out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard)
         control, *extra = out if isinstance(out, tuple) else (out,)
         accel, v = float(control[0, 1]), float(obs.speed_mps)
@@ -271,7 +296,8 @@ class BIDAgent:
                 accel = self._move_off(accel, v, near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
                        self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None),
-                       self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0)
+                       self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0,
+                       self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
             if need > 0:
                 accel = min(accel, -need)
         if self.max_speed > 0 and v > self.max_speed:

@@ -72,6 +72,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "kind, fitted by cross-entropy weighted as --hazard-pos-weight and "
                         "--hazard-turn-weight say) and its nearness is fitted only where one is: it "
                         "reads a nearness where it says yes, none elsewhere")
+    p.add_argument("--hazard-crossing", action="store_true", default=None,
+                   help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
+                        "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")
     p.add_argument("--mirror", type=float, default=None, metavar="SHARE",
                    help="share of training samples mirrored left to right, commands and steering with "
                         "them (augment.mirror): for fitting a detector such as --train-only SC, since the "

@@ -27,7 +27,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
 INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc",
-                               "sc_presence"}
+                               "sc_presence", "hazard_crossing"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -87,6 +87,9 @@ class ModelConfig:
     # its nearness (areas.SC): it reads a nearness only where it says yes, rather than the
     # blend of "none" and "near" an L1 fit on both gives an actor it is unsure of.
     sc_presence: bool = False
+    # A fourth hazard output from a second SC map of its own (BID.hazard_crossing): how near the
+    # next crossing on the path with a pedestrian on it is (bid_model.hazards.crossing_distances).
+    hazard_crossing: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -102,6 +105,8 @@ class ModelConfig:
             raise ValueError("hazard_sc (SC) reads beside the hazard head: it needs hazard")
         if self.sc_presence and not self.hazard_sc:
             raise ValueError("sc_presence is a part of SC: it needs hazard_sc")
+        if self.hazard_crossing and not (self.hazard_sc and self.hazard_light):
+            raise ValueError("hazard_crossing is the fourth hazard output, beside SC: it needs hazard_sc and hazard_light")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 

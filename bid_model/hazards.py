@@ -20,6 +20,15 @@ AHEAD_STEP_S) is in the path now, at the distance from the ego's front to where 
 pedestrian about to step off the kerb, or walking across the street a turn leads into, is
 what the expert brakes for (within 3 s); by where it is now it enters the targets only as it
 steps into the corridor.
+
+The fourth target (`crossing_distances`, `bid train --hazard-crossing`) is the distance from the
+ego's front to where its path enters the nearest pedestrian crossing that has a pedestrian on it
+(or walking onto it within ONTO_S), not counting one walking away from the path beside the
+corridor, nor a crossing the front is already on. Those waiting for their green stand at its
+end, within 0.1 m of it but not on it: they do not count until they walk. It is where the
+expert stops for a pedestrian crossing (2 m before it): the BID's first pedestrian contacts in
+Town02 were all on crossings, most just after it moved off on green with people still on
+the stripes (docs/experiments.md).
 """
 
 from __future__ import annotations
@@ -31,9 +40,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+import shapely
+from shapely.geometry import Polygon
 
 from bid_sim.errors import BidError
-from bid_sim.recording import read_snapshots
+from bid_sim.recording import read_facts, read_snapshots
 from bid_sim.snapshot import RED, YELLOW, Actors, Snapshot
 
 log = logging.getLogger(__name__)
@@ -41,7 +52,8 @@ log = logging.getLogger(__name__)
 HAZARD_AHEAD_M = 25.0  # how far along the path to look: about 2 s at Town01's 11 m/s, and a stop
 CORRIDOR_MARGIN_M = 0.4  # beyond the ego's half width: a pedestrian on the kerb is not in the path
 PATH_STEP_M = 0.5  # spacing of the path's sample points
-KINDS = ("pedestrian", "vehicle", "red_light")  # the columns of the targets (red_light: model.hazard_light)
+# The columns of the targets (red_light: model.hazard_light; crossing: model.hazard_crossing).
+KINDS = ("pedestrian", "vehicle", "red_light", "crossing")
 PATH_KINDS = KINDS[:2]  # those found in the path (path_hazards)
 # The hazard head's nearness (1 - distance / HAZARD_AHEAD_M) from which an actor counts as seen
 # in the path, within 20 of the 25 m: where `bid evaluate --hazard-brake` / `--vehicle-brake` start.
@@ -49,6 +61,10 @@ SEEN_NEARNESS = 0.2
 NEAR_M = 10.0  # an actor in the path this close must be seen (the validation's detection rate)
 AHEAD_STEP_S = 0.5  # with ped_ahead_s, where pedestrians will be is looked at this often
 _VERSION = "hazard-v1"  # part of the cache key: bump when the definition changes
+ONTO_S = 1.0  # a pedestrian walking onto a crossing within this long is on it already
+WALKING_MPS = 0.3  # slower is standing
+AWAY_M = 0.5  # beyond the corridor by this, a pedestrian walking away from the path is no one's
+_CROSSING_VERSION = "crossing-v2"
 
 
 def _path_points(xy: np.ndarray, s: np.ndarray, s0: float) -> np.ndarray:
@@ -95,6 +111,25 @@ def light_distance(state: dict) -> float:
     return float(np.clip(dist, 0.0, HAZARD_AHEAD_M))
 
 
+def _trajectory(snaps: list[Snapshot]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(xy (T, 2), arc length s (T,), and both extended straight on past the end along the last
+    heading, strictly increasing for np.interp) of an episode's ego poses."""
+    xy = np.array([(s.ego.x_m, s.ego.y_m) for s in snaps], dtype=np.float64)
+    s_all = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
+    last = snaps[-1].ego
+    tail = xy[-1] + 2 * HAZARD_AHEAD_M * np.array([np.cos(last.yaw_rad), np.sin(last.yaw_rad)])
+    xy_ext, s_ext = np.vstack([xy, tail]), np.r_[s_all, s_all[-1] + 2 * HAZARD_AHEAD_M]
+    # np.interp needs strictly increasing arc lengths: a standing ego repeats its pose.
+    keep = np.r_[True, np.diff(s_ext) > 1e-6]
+    return xy, s_all, xy_ext[keep], s_ext[keep]
+
+
+def _path_of(t: int, xy: np.ndarray, s_all: np.ndarray, xy_ext: np.ndarray, s_ext: np.ndarray) -> np.ndarray:
+    path = _path_points(xy_ext, s_ext, s_all[t])
+    path[0] = xy[t]  # the ego itself, not the first pose after a standstill's jitter
+    return path
+
+
 def path_hazards(snaps: list[Snapshot], ped_ahead_s: float = 0.0) -> np.ndarray:
     """(T, 2) float32: per snapshot (one episode, in step order) the distance in metres from
     the ego's front to the nearest pedestrian and vehicle in its path (HAZARD_AHEAD_M: none);
@@ -103,18 +138,10 @@ def path_hazards(snaps: list[Snapshot], ped_ahead_s: float = 0.0) -> np.ndarray:
     out = np.full((len(snaps), len(PATH_KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
     if not snaps:
         return out
-    xy = np.array([(s.ego.x_m, s.ego.y_m) for s in snaps], dtype=np.float64)
-    s_all = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
-    # Straight on past the end, along the last heading.
-    last = snaps[-1].ego
-    tail = xy[-1] + 2 * HAZARD_AHEAD_M * np.array([np.cos(last.yaw_rad), np.sin(last.yaw_rad)])
-    xy_ext, s_ext = np.vstack([xy, tail]), np.r_[s_all, s_all[-1] + 2 * HAZARD_AHEAD_M]
-    # np.interp needs strictly increasing arc lengths: a standing ego repeats its pose.
-    keep = np.r_[True, np.diff(s_ext) > 1e-6]
-    xy_ext, s_ext = xy_ext[keep], s_ext[keep]
+    traj = _trajectory(snaps)
+    s_all = traj[1]
     for t, snap in enumerate(snaps):
-        path = _path_points(xy_ext, s_ext, s_all[t])
-        path[0] = xy[t]  # the ego itself, not the first pose after a standstill's jitter
+        path = _path_of(t, *traj)
         half_width = snap.ego.width_m / 2 + CORRIDOR_MARGIN_M
         front = snap.ego.length_m / 2
         out[t] = (_nearest_in_path(snap.pedestrians, path, half_width, front),
@@ -134,18 +161,92 @@ def path_hazards(snaps: list[Snapshot], ped_ahead_s: float = 0.0) -> np.ndarray:
     return out
 
 
+def _entry(polygon, path: np.ndarray) -> int | None:
+    """Index of the first point of `path` inside `polygon` (None: it never enters)."""
+    inside = shapely.contains_xy(polygon, path[:, 0], path[:, 1])
+    return int(np.argmax(inside)) if inside.any() else None
+
+
+def crossing_distances(snaps: list[Snapshot], crossings: list[Polygon]) -> np.ndarray:
+    """(T,) float32: per snapshot (one episode, in step order) the distance in metres from the
+    ego's front to where its path enters the nearest crossing with a pedestrian on it
+    (HAZARD_AHEAD_M: none within reach; see the module's docstring). `crossings`: the town's
+    crossing polygons (TownMap.crossings)."""
+    out = np.full(len(snaps), HAZARD_AHEAD_M, dtype=np.float32)
+    if not snaps or not crossings:
+        return out
+    for c in crossings:
+        shapely.prepare(c)
+    centres = np.array([(c.centroid.x, c.centroid.y) for c in crossings])
+    reach = np.array([np.hypot(b[2] - b[0], b[3] - b[1]) / 2 for b in (c.bounds for c in crossings)])
+    traj = _trajectory(snaps)
+    for t, snap in enumerate(snaps):
+        peds = snap.pedestrians
+        if len(peds) == 0:
+            continue
+        ego_xy = traj[0][t]
+        near = np.flatnonzero(np.hypot(*(centres - ego_xy).T) < HAZARD_AHEAD_M + reach + snap.ego.length_m)
+        if not len(near):
+            continue
+        path = _path_of(t, *traj)
+        front = snap.ego.length_m / 2
+        half_width = snap.ego.width_m / 2 + CORRIDOR_MARGIN_M
+        heading = np.stack([np.cos(peds.yaw_rad), np.sin(peds.yaw_rad)], axis=1)
+        walking = peds.speed_mps > WALKING_MPS
+        soon = peds.xy + ONTO_S * peds.speed_mps[:, None] * heading
+        for c in near:
+            i = _entry(crossings[c], path)
+            if i is None or i == 0 or i * PATH_STEP_M - front < 0:
+                continue  # not on the path, or the front is on it already
+            on = shapely.contains_xy(crossings[c], peds.xy[:, 0], peds.xy[:, 1])
+            on |= walking & shapely.contains_xy(crossings[c], soon[:, 0], soon[:, 1])
+            if not on.any():
+                continue
+            # Beside the corridor and walking away from the path (across where it enters): no one's.
+            tangent = path[min(i + 1, len(path) - 1)] - path[i - 1]
+            normal = np.array([-tangent[1], tangent[0]]) / max(np.linalg.norm(tangent), 1e-9)
+            lateral = (peds.xy - path[i]) @ normal
+            away = walking & (lateral * (heading @ normal) > 0) & (np.abs(lateral) > half_width + AWAY_M)
+            if (on & ~away).any():
+                out[t] = min(out[t], float(np.clip(i * PATH_STEP_M - front, 0.0, HAZARD_AHEAD_M)))
+    return out
+
+
+def town_crossings(path: str | os.PathLike) -> list[Polygon]:
+    """The crossing polygons of the town a recording was made in (its facts' town)."""
+    from bid_sim.town_map import load_town_map
+    from bid_sim.towns import resolve_town
+
+    facts = read_facts(path)
+    spec = facts.get("town_source") or facts.get("town")
+    if not spec:
+        raise BidError(f"{path} names no town: record it again with `bid record`")
+    return [Polygon(ring) for ring in load_town_map(resolve_town(spec)).crossings]
+
+
 def file_hazards(path: str | os.PathLike, ped_ahead_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(steps (T,), path_hazards (T, 2)) of one recording."""
     snaps = [snap for snap, _control in read_snapshots(path)]
     return np.array([s.step for s in snaps], dtype=np.int64), path_hazards(snaps, ped_ahead_s)
 
 
+def file_crossings(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """(steps (T,), crossing_distances (T, 1)) of one recording."""
+    snaps = [snap for snap, _control in read_snapshots(path)]
+    return (np.array([s.step for s in snaps], dtype=np.int64),
+            crossing_distances(snaps, town_crossings(path))[:, None])
+
+
 def _file_job(job: tuple[str, float]) -> tuple[np.ndarray, np.ndarray]:
     return file_hazards(*job)
 
 
-def _key(files: list[Path], ped_ahead_s: float = 0.0) -> str:
-    h = hashlib.sha1(_VERSION.encode() + (f";ahead={ped_ahead_s:g}".encode() if ped_ahead_s else b""))
+def _crossing_job(job: tuple[str]) -> tuple[np.ndarray, np.ndarray]:
+    return file_crossings(*job)
+
+
+def _key(files: list[Path], version: str) -> str:
+    h = hashlib.sha1(version.encode())
     for f in files:
         st = f.stat()
         h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns};".encode())
@@ -157,36 +258,52 @@ def index_hazards(files: list[Path], episode: np.ndarray, step: np.ndarray, cach
     """(N, 2) float32 path_hazards (with `ped_ahead_s`) of every index row (recording `episode[i]`, `step[i]`),
     read from `cache_dir` when it holds them for these files, else computed (one worker
     process per recording) and stored there. A row without a /scene record is HAZARD_AHEAD_M."""
-    path = cache_dir / f"hazards-{_key(files, ped_ahead_s)}.npy" if cache_dir is not None else None
+    version = _VERSION + (f";ahead={ped_ahead_s:g}" if ped_ahead_s else "")
+    return _index(files, episode, step, cache_dir, workers, "hazards", version, len(PATH_KINDS),
+                  _file_job, [(str(f), ped_ahead_s) for f in files])
+
+
+def index_crossings(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: Path | None,
+                    workers: int | None = None) -> np.ndarray:
+    """(N, 1) float32 crossing_distances of every index row, cached as index_hazards' are."""
+    return _index(files, episode, step, cache_dir, workers, "crossings", _CROSSING_VERSION, 1,
+                  _crossing_job, [(str(f),) for f in files])
+
+
+def _index(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: Path | None,
+           workers: int | None, name: str, version: str, columns: int, job_fn, file_jobs: list[tuple]) -> np.ndarray:
+    """Per-recording targets `job_fn(file_jobs[e])` → (steps, (T, columns)) laid on the index rows,
+    cached in `cache_dir` as `name`-KEY.npy (one such file kept)."""
+    path = cache_dir / f"{name}-{_key(files, version)}.npy" if cache_dir is not None else None
     if path is not None and path.exists():
         cached = np.load(path)
-        if cached.shape == (len(step), len(PATH_KINDS)):
+        if cached.shape == (len(step), columns):
             return cached
-    out = np.full((len(step), len(PATH_KINDS)), HAZARD_AHEAD_M, dtype=np.float32)
+    out = np.full((len(step), columns), HAZARD_AHEAD_M, dtype=np.float32)
     wanted = sorted(set(np.unique(episode).tolist()))
-    jobs = [(str(files[e]), ped_ahead_s) for e in wanted]
+    jobs = [file_jobs[e] for e in wanted]
     workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))
-    log.info("finding what stands in the path in %d recordings with %d workers", len(jobs), workers)
+    log.info("finding the %s targets of %d recordings with %d workers", name, len(jobs), workers)
     if workers > 1 and len(jobs) > 1:
         with mp.get_context("spawn").Pool(workers) as pool:
-            results = pool.map(_file_job, jobs)
+            results = pool.map(job_fn, jobs)
     else:
-        results = [_file_job(j) for j in jobs]
-    for e, (steps, hazards) in zip(wanted, results, strict=True):
+        results = [job_fn(j) for j in jobs]
+    for e, (steps, targets) in zip(wanted, results, strict=True):
         rows = np.flatnonzero(episode == e)
         at = np.searchsorted(steps, step[rows])
         found = (at < len(steps)) & (steps[np.minimum(at, len(steps) - 1)] == step[rows])
-        out[rows[found]] = hazards[at[found]]
+        out[rows[found]] = targets[at[found]]
     if path is not None:
         try:
             cache_dir.mkdir(exist_ok=True)
             tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npy")
             np.save(tmp, out)
-            for old in cache_dir.glob("hazards-*.npy"):
+            for old in cache_dir.glob(f"{name}-*.npy"):
                 if old != path and not old.name.endswith(".tmp.npy"):
                     old.unlink()
             os.replace(tmp, path)
         except OSError as e:
-            raise BidError(f"cannot write the hazard cache in {cache_dir} ({e.strerror}); free disk space "
+            raise BidError(f"cannot write the {name} cache in {cache_dir} ({e.strerror}); free disk space "
                            "or train with --no-cache") from e
     return out

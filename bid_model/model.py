@@ -55,7 +55,7 @@ def grid_hw(frame_hw: tuple[int, int]) -> dict[str, tuple[int, int]]:
 
 def hazard_kinds(config: ModelConfig) -> int:
     """How many of bid_model.hazards.KINDS a model of `config` has its hazard head say (0: none)."""
-    return (2 + config.hazard_light) if config.hazard else 0
+    return (2 + config.hazard_light + config.hazard_crossing) if config.hazard else 0
 
 
 class AttendingHazardHead(nn.Module):
@@ -151,13 +151,16 @@ class BID(nn.Module):
         self.hazard_head: nn.Module | None = None
         if c.hazard and c.hazard_attend:
             grids = {name: (w[i], *self.grid_hw()[name]) for i, name in ((1, "V2"), (2, "V4"))}
-            self.hazard_head = AttendingHazardHead(grids, d, c.cpc_hidden[1], self.hazard_kinds())
+            self.hazard_head = AttendingHazardHead(grids, d, c.cpc_hidden[1], 2 + c.hazard_light)
         elif c.hazard:
             self.hazard_head = nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
-                                             nn.Linear(c.cpc_hidden[1], self.hazard_kinds()))
+                                             nn.Linear(c.cpc_hidden[1], 2 + c.hazard_light))
         # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
         self.hazard_sc = (SC(c.frame_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
                           if c.hazard_sc else None)
+        # With config.hazard_crossing a second SC map of its own, one kind: how near the next crossing
+        # on the path with a pedestrian on it is (the fourth hazard output; warm_start_crossing).
+        self.hazard_crossing = SC(c.frame_hw, c.n_commands, 1) if c.hazard_crossing else None
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
@@ -271,6 +274,9 @@ class BID(nn.Module):
         if self.hazard_sc is not None:
             feats["SC"] = self.hazard_sc(self._normalise(frame_t), self._normalise(frame_prev),
                                          command_onehot.float())
+        if self.hazard_crossing is not None:
+            feats["crossing"] = self.hazard_crossing(self._normalise(frame_t), self._normalise(frame_prev),
+                                                     command_onehot.float())
         if self.training:
             self.mean_batches += 1
         return feats
@@ -292,7 +298,8 @@ class BID(nn.Module):
         pedestrian's and the vehicle's are the larger of the head's and SC's, SC's with
         config.sc_presence only where its logit says one is in the path; with `apart` the head's
         outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
-        then its logits), so that training fits each alone)."""
+        then its logits), so that training fits each alone); with config.hazard_crossing the last
+        column is how near an occupied crossing is (its own SC map's), both ways."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
         if self.config.hazard_attend:
@@ -301,11 +308,12 @@ class BID(nn.Module):
             near = self.hazard_head(features["MPC"].mean(dim=1))
         if self.hazard_sc is not None:  # what either sees in the path
             sc, k = features["SC"].to(near.dtype), len(PATH_KINDS)
+            crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
             if apart:
-                return torch.cat([near, sc], dim=1)
+                return torch.cat([near, sc, *crossing], dim=1)
             if self.config.sc_presence:  # its nearness where it says one is in the path, else none
                 sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
-            near = torch.cat([torch.maximum(near[:, :k], sc), near[:, k:]], dim=1)
+            near = torch.cat([torch.maximum(near[:, :k], sc), near[:, k:], *crossing], dim=1)
         return near
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
@@ -324,9 +332,10 @@ class BID(nn.Module):
 
     def parts(self) -> dict[str, nn.Module]:
         """Every area by name, then the optional extra pathways this model has: dorsal_tokens,
-        speed, forecast, hazard, SC (the names of parameter_counts and `bid train --train-only`)."""
+        speed, forecast, hazard, SC, crossing (the names of parameter_counts and `bid train --train-only`)."""
         extra = (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
-                 ("forecast", self.forecast_head), ("hazard", self.hazard_head), ("SC", self.hazard_sc))
+                 ("forecast", self.forecast_head), ("hazard", self.hazard_head), ("SC", self.hazard_sc),
+                 ("crossing", self.hazard_crossing))
         return {**self.areas, **{name: module for name, module in extra if module is not None}}
 
     def parameter_counts(self) -> dict[str, int]:

@@ -28,7 +28,7 @@ import torch
 from torch.utils.data import Dataset
 
 from bid_model.data import resize_frame, split_episodes
-from bid_model.hazards import HAZARD_AHEAD_M, index_hazards, light_distance
+from bid_model.hazards import HAZARD_AHEAD_M, index_crossings, index_hazards, light_distance
 from bid_sim.errors import BidError
 from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
 from bid_sim.snapshot import RED, YELLOW
@@ -396,7 +396,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
                     brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1,
-                    hazard: bool = False, hazard_ahead_s: float = 0.0) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    hazard: bool = False, hazard_ahead_s: float = 0.0,
+                    crossing: bool = False) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
     The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake,
@@ -408,7 +409,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     ahead (`future_speeds`); with `hazard`, "hazard", what stands in the path
     (`hazard_nearness` of bid_model.hazards.index_hazards, cached beside the frames) and how
     near a red light's stop line is (hazards.light_distance): (pedestrian, vehicle, red_light);
-    pedestrians also where they will be within `hazard_ahead_s` (hazards.path_hazards).
+    pedestrians also where they will be within `hazard_ahead_s` (hazards.path_hazards); with
+    `crossing` too a fourth, how near the next crossing with a pedestrian on it is
+    (hazards.index_crossings, cached likewise).
     """
     folder = Path(folder)
     files, partial = find_recordings(folder)
@@ -435,7 +438,11 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     if hazard:
         in_path = index_hazards(index.files, index.episode, index.step, folder / CACHE_DIR if cache else None,
                                 ped_ahead_s=hazard_ahead_s)
-        near = hazard_nearness(np.column_stack([in_path, index.light_dist]))
+        columns = [in_path, index.light_dist]
+        if crossing:
+            columns.append(index_crossings(index.files, index.episode, index.step,
+                                           folder / CACHE_DIR if cache else None))
+        near = hazard_nearness(np.column_stack(columns))
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed), accel, forecast, near)
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near)
@@ -451,6 +458,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "hazard_frames": None if near is None else {"pedestrian_in_path": int((near[:, 0] > 0).sum()),
                                                     "vehicle_in_path": int((near[:, 1] > 0).sum()),
                                                     "red_light_ahead": int((near[:, 2] > 0).sum()),
+                                                    **({"crossing_occupied": int((near[:, 3] > 0).sum())}
+                                                       if crossing else {}),
                                                     "pedestrians_ahead_s": hazard_ahead_s},
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),

@@ -278,7 +278,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       brake_lookahead=tc.brake_lookahead,
                                                       forecast_steps=ahead, hold_repeat=tc.hold_repeat,
                                                       hazard=tc.lambda_hazard > 0,
-                                                      hazard_ahead_s=tc.hazard_ahead_s)
+                                                      hazard_ahead_s=tc.hazard_ahead_s,
+                                                      crossing=config.model.hazard_crossing)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -533,13 +534,17 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
         if hazard is not None:
             near = batch["hazard"].to(device)
-            k = len(PATH_KINDS)
-            own = hazard.shape[1] - (k * (1 + base.config.sc_presence) if apart else 0)  # the head's, then SC's
+            k, crossing = len(PATH_KINDS), base.config.hazard_crossing
+            own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
             weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2])
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if apart:
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
-                loss = loss + tc.lambda_hazard * sc_loss(hazard[:, own:], near[:, :k], *weights)
+                sc_end = own + k * (1 + base.config.sc_presence)
+                loss = loss + tc.lambda_hazard * sc_loss(hazard[:, own:sc_end], near[:, :k], *weights)
+            if crossing:
+                at = KINDS.index("crossing")
+                loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, -1:], near[:, at:at + 1], *weights)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -614,6 +619,26 @@ def load_shared_weights(model: nn.Module, state: dict[str, torch.Tensor]) -> lis
     shared = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
     model.load_state_dict(shared, strict=False)
     return sorted(k for k in own if k not in shared)
+
+
+def warm_start_crossing(model: BID, state: dict[str, torch.Tensor], fresh: list[str]) -> list[str]:
+    """A crossing map (model.hazard_crossing) that `state` lacks starts as `state`'s SC with its
+    pedestrian map: a detector of pedestrians in the path is nearer an occupied crossing than
+    random weights are. Returns `fresh` less the tensors so started."""
+    if model.hazard_crossing is None or not any(k.startswith("hazard_crossing.") for k in fresh):
+        return fresh
+    own, started = model.hazard_crossing.state_dict(), []
+    for name, tensor in own.items():
+        theirs = state.get(f"hazard_sc.{name}")
+        if theirs is None or f"hazard_crossing.{name}" not in fresh:
+            continue
+        if theirs.shape != tensor.shape:  # the last 1×1 layer: its first map, the pedestrians'
+            if theirs.shape[1:] != tensor.shape[1:] or theirs.ndim == 0:
+                continue
+            theirs = theirs[:tensor.shape[0]]
+        tensor.copy_(theirs)
+        started.append(f"hazard_crossing.{name}")
+    return sorted(set(fresh) - set(started))
 
 
 # --- the run ----------------------------------------------------------------------------------
@@ -730,6 +755,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if "frame_hw" in diff:
             state = resize_grid_tokens(state, tuple(theirs.frame_hw), model)
         fresh = load_shared_weights(model, state)
+        fresh = warm_start_crossing(model, state, fresh)
     elif start_from is not None:
         model.load_state_dict(start_from["model"])
 
@@ -855,7 +881,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
              "--hazard-turn-weight": args.hazard_turn_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
-             "--sc-presence": args.sc_presence,
+             "--sc-presence": args.sc_presence, "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
     if args.resume:
@@ -954,6 +980,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard_sc:
             raise BidError("--sc-presence is a part of SC: add --hazard-sc (and --hazard WEIGHT)")
         model = dataclasses.replace(model, sc_presence=True)
+    if args.hazard_crossing:
+        if not model.hazard_sc:
+            raise BidError("--hazard-crossing is a second SC map beside SC: add --hazard-sc (and --hazard WEIGHT)")
+        model = dataclasses.replace(model, hazard_crossing=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

@@ -199,6 +199,55 @@ def test_pedestrian_brake_stops_short_of_a_seen_pedestrian_and_holds_near_one():
     assert pedestrian_brake(0.9, 0.0, hold_m=0.0) == pytest.approx(0.0)  # never held; standing asks nothing
 
 
+def test_crossing_brake_stops_2_m_short_of_an_occupied_crossing_and_holds_near_one():
+    from bid_model.agent import crossing_brake
+
+    assert crossing_brake(0.1, 10.0) == 0.0  # seen nowhere within 20 m
+    # 12.5 m ahead at 10 m/s: stop 2 m short, 100 / (2 · 10.5) m/s² of 8.
+    assert crossing_brake(0.5, 10.0) == pytest.approx(100 / 21 / 8)
+    assert crossing_brake(0.5, 1.0) == 0.0  # slow and 12.5 m off: below BIND_SHARE, brake later
+    assert crossing_brake(0.8, 1.0) == crossing_brake(0.8, 0.0) == 1.0  # 5 m off and slow: stay standing
+    assert crossing_brake(0.72, 0.0) == 0.0  # 7 m off, standing: not held
+    assert crossing_brake(0.8, 2.5) == pytest.approx(6.25 / 6 / 8)  # 5 m off at 2.5 m/s: stop 2 m short
+
+
+def test_crossing_brake_reads_the_fourth_hazard_output(recorded, tmp_path):
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from bid_model.agent import crossing_brake
+    from bid_model.config import RunConfig
+    from bid_sim.agents import Observation
+
+    cfg = tiny()
+    run = RunConfig(dataclasses.replace(cfg.model, hazard=True, hazard_light=True, hazard_sc=True,
+                                        hazard_crossing=True),
+                    dataclasses.replace(cfg.train.with_epochs(1), lambda_hazard=1.0))
+    train(tmp_path / "x", run, data=recorded, progress=False)
+    plain = BIDAgent(tmp_path / "x" / "last.pt")
+    braking = BIDAgent(tmp_path / "x" / "last.pt", crossing_brake=1.0)
+    frame = np.random.default_rng(0).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    for agent in (plain, braking):
+        with torch.no_grad():  # the head and SC see nothing; the crossing map says 0.6 everywhere
+            agent.model.hazard_head[-1].weight.zero_()
+            agent.model.hazard_head[-1].bias.zero_()
+            agent.model.hazard_sc.priority[-1].weight.zero_()
+            agent.model.hazard_sc.priority[-1].bias.zero_()
+            agent.model.hazard_crossing.priority[-1].weight.zero_()
+            agent.model.hazard_crossing.priority[-1].bias.fill_(0.6)
+        agent.reset(None)
+    obs = Observation(frame, frame, 4, 6.0, None)
+    free = plain.act(obs).accel
+    assert braking.act(obs).accel == pytest.approx(min(free, -crossing_brake(0.6, 6.0)), abs=1e-5)
+    run = RunConfig(dataclasses.replace(cfg.model, hazard=True, hazard_light=True),
+                    dataclasses.replace(cfg.train.with_epochs(1), lambda_hazard=1.0))
+    train(tmp_path / "hz", run, data=recorded, progress=False)
+    with pytest.raises(BidError, match="no crossing output; train one with --hazard-crossing"):
+        BIDAgent(tmp_path / "hz" / "last.pt", crossing_brake=1.0)
+
+
 def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
     from bid_model.agent import vehicle_brake
 

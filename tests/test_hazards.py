@@ -5,10 +5,14 @@ import math
 
 import numpy as np
 import pytest
+from shapely.geometry import Polygon, box
 
 from bid_model.hazards import (
     HAZARD_AHEAD_M,
+    crossing_distances,
+    file_crossings,
     file_hazards,
+    index_crossings,
     index_hazards,
     light_distance,
     path_hazards,
@@ -116,6 +120,39 @@ def test_with_a_look_ahead_a_pedestrian_about_to_walk_into_the_path_is_in_it_alr
     assert path_hazards(snaps[:3], ped_ahead_s=1.5).shape == (3, 2)
 
 
+def walkers(*rows: tuple[float, float, float, float]) -> Actors:
+    """Pedestrians (x, y, yaw, speed), 0.5 m boxes."""
+    a = actors(*((x, y, yaw, 0.5, 0.5) for x, y, yaw, _ in rows))
+    return Actors(a.ids, a.xy, a.yaw_rad, np.array([r[3] for r in rows], dtype=float), a.size, a.colour)
+
+
+def test_an_occupied_crossing_on_the_path_is_seen_where_the_path_enters_it():
+    # A zebra crossing 3 m wide across the ego's road (x 15..18), one beside its path (y 6..9).
+    zebra, aside = box(15.0, -5.0, 18.0, 5.0), box(15.0, 6.0, 18.0, 9.0)
+    ahead = crossing_distances(straight(80, peds=walkers((16.5, 3.0, math.pi / 2, 0.0))), [zebra, aside])
+    assert ahead[0] == pytest.approx(15.0 - FRONT_M, abs=0.5)
+    assert np.all(ahead[1:] == HAZARD_AHEAD_M)  # the pedestrian is in the first snapshot only
+    # Nobody on it, or only on the one off the path, or only on the kerb beyond it, or waiting
+    # at its end for a green (SUMO's stand within 0.1 m of it): none.
+    for peds in (Actors.empty(), walkers((16.5, 7.5, 0.0, 1.2)), walkers((16.5, 6.5, 0.0, 0.0)),
+                 walkers((16.5, 5.05, -math.pi / 2, 0.0))):
+        assert crossing_distances(straight(80, peds=peds), [zebra, aside])[0] == HAZARD_AHEAD_M
+    # Walking onto it within a second counts; walking away from the path beside it does not,
+    # nor does a crossing the front is already on.
+    onto = walkers((16.5, 5.8, -math.pi / 2, 1.3))
+    assert crossing_distances(straight(80, peds=onto), [zebra])[0] == pytest.approx(15.0 - FRONT_M, abs=0.5)
+    away = walkers((16.5, 3.5, math.pi / 2, 1.3))
+    assert crossing_distances(straight(80, peds=away), [zebra])[0] == HAZARD_AHEAD_M
+    towards = walkers((16.5, 3.5, -math.pi / 2, 1.3))
+    assert crossing_distances(straight(80, peds=towards), [zebra])[0] < HAZARD_AHEAD_M
+    on_it = [snap(0, 13.5, 0.0, 0.0, peds=walkers((16.5, 0.0, 0.0, 0.0))), *straight(80)[1:]]
+    assert crossing_distances(on_it, [zebra])[0] == HAZARD_AHEAD_M
+    far = [snap(0, -20.0, 0.0, 0.0, peds=walkers((16.5, 0.0, 0.0, 0.0))), *straight(80)[1:]]
+    assert crossing_distances(far, [zebra])[0] == HAZARD_AHEAD_M  # 32.7 m off: beyond reach
+    assert crossing_distances([], [zebra]).shape == (0,)
+    assert isinstance(zebra, Polygon)
+
+
 def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
     files, _ = find_recordings(recorded)
     steps, dist = file_hazards(files[0])
@@ -146,6 +183,16 @@ def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
     assert [p.name for p in (recorded / CACHE_DIR).glob("hazards-*.npy")] != [p.name for p in cached]
     assert np.all(ahead.hazard[:, 0] >= train.hazard[:, 0]) and np.array_equal(ahead.hazard[:, 1:], train.hazard[:, 1:])
     assert "hazard" not in open_recordings(recorded, (48, 144), 0.5, 0)[0][0]
+    # With the crossing target, a fourth column from the recordings' town, cached beside them.
+    steps, crossing = file_crossings(files[0])
+    assert steps.tolist() == ep.steps.tolist() and crossing.shape == (len(steps), 1)
+    with_crossing, _, desc = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True, crossing=True)
+    assert with_crossing[0]["hazard"].shape == (4,)
+    assert np.array_equal(with_crossing.hazard[:, :3], train.hazard)
+    want = hazard_nearness(index_crossings(files, train.index.episode, train.index.step, None, workers=1))
+    assert np.array_equal(with_crossing.hazard[:, 3:], want)
+    assert desc["hazard_frames"]["crossing_occupied"] == int((want > 0).sum())
+    assert len(list((recorded / CACHE_DIR).glob("crossings-*.npy"))) == 1
 
 
 def test_the_light_target_is_the_distance_to_a_red_or_amber_stop_line_within_reach():

@@ -21,7 +21,15 @@ from bid_model.config import RunConfig, tiny, with_variant
 from bid_model.data import synthetic_split
 from bid_model.model import BID
 from bid_model.recordings import RecordingDataset
-from bid_model.train import METRIC_COLUMNS, EpisodeShardSampler, busy_cores, item_episodes, train
+from bid_model.train import (
+    METRIC_COLUMNS,
+    EpisodeShardSampler,
+    busy_cores,
+    item_episodes,
+    load_shared_weights,
+    train,
+    warm_start_crossing,
+)
 from bid_sim.cli import main as bid
 from bid_sim.errors import BidError
 
@@ -834,6 +842,44 @@ def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(reco
     assert torch.allclose(near[:, :2], torch.maximum(apart[:, :2], gated))
     assert torch.allclose(near[:, 2:], apart[:, 2:3])
     assert bid([*base, "--hazard", "1", "--sc-presence", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "add --hazard-sc" in err and "\n" not in err
+
+
+def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(recorded, tmp_path, capsys):
+    """--hazard-crossing: a second SC map says how near an occupied crossing on the path is, the
+    hazard output's fourth column. Started from a run with SC, it starts as that SC with its
+    pedestrian map, and `--train-only crossing` moves it alone."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--hazard", "1", "--hazard-sc", "--out", str(tmp_path / "sc")]) == 0
+    start = load_checkpoint(tmp_path / "sc" / "last.pt")
+    config = RunConfig.from_dict(start["config"]).model
+    model = BID(dataclasses.replace(config, hazard_crossing=True))
+    fresh = load_shared_weights(model, start["model"])
+    assert fresh and all(k.startswith("hazard_crossing.") for k in fresh)
+    assert warm_start_crossing(model, start["model"], fresh) == []
+    own = model.hazard_crossing.state_dict()
+    assert torch.equal(own["retina.0.0.weight"], start["model"]["hazard_sc.retina.0.0.weight"])
+    assert torch.equal(own["priority.2.weight"], start["model"]["hazard_sc.priority.2.weight"][:1])
+
+    assert bid([*base, "--init", str(tmp_path / "sc" / "last.pt"), "--hazard", "1", "--hazard-sc",
+                "--hazard-crossing", "--train-only", "crossing", "--out", str(tmp_path / "x")]) == 0
+    tuned = load_checkpoint(tmp_path / "x" / "last.pt")
+    assert tuned["config"]["model"]["hazard_crossing"] and "fresh" not in tuned.get("init", {})
+    assert all(torch.equal(v, tuned["model"][k]) for k, v in start["model"].items())  # all else as it was
+    assert not torch.equal(tuned["model"]["hazard_crossing.priority.2.weight"], own["priority.2.weight"])
+    model, _ = load_model(tmp_path / "x" / "last.pt", preset="tiny")
+    frame = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 1, 2, 3]]
+    with torch.no_grad():
+        near = model(frame, prev, cmd, hazard=True)[1]
+        apart = model(frame, prev, cmd, hazard=True, hazard_apart=True)[1]
+    assert near.shape == (4, 4) and apart.shape == (4, 6)  # the head's 3, SC's 2, the crossing map's 1
+    assert torch.allclose(near[:, :2], torch.maximum(apart[:, :2], apart[:, 3:5]))
+    assert torch.allclose(near[:, 2:], apart[:, [2, 5]])
+    assert "crossing" in model.parameter_counts()
+    assert bid([*base, "--hazard", "1", "--hazard-crossing", "--out", str(tmp_path / "y")]) == 2
     err = capsys.readouterr().err.strip()
     assert "add --hazard-sc" in err and "\n" not in err
 
