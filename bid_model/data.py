@@ -21,11 +21,13 @@ Dataset contract. Training reads any `torch.utils.data.Dataset` whose items are 
 | `future_speed` | float32 tensor (K,)             | optional: the speed at each of the K       |
 |              |                                   | horizons of `forecast_s`, m/s (the speed   |
 |              |                                   | forecast's targets; needed by --forecast)  |
-| `hazard`     | float32 tensor (3,)               | optional: nearness of the nearest          |
+| `hazard`     | float32 tensor (3,) or (4,)       | optional: nearness of the nearest          |
 |              |                                   | pedestrian and vehicle in the ego's path   |
-|              |                                   | and of a red light's stop line, 1 −        |
+|              |                                   | and of a red light's stop line (and of a   |
+|              |                                   | crossing with a pedestrian on it), 1 −     |
 |              |                                   | distance / 25 m, 0 for none (the hazard    |
-|              |                                   | head's targets; needed by --hazard)        |
+|              |                                   | head's targets; needed by --hazard, the    |
+|              |                                   | fourth by --hazard-crossing)               |
 
 Train and validation sets are split by episode (`split_episodes`), never by frame, so that
 neighbouring, nearly identical frames do not leak into validation. `check_sample` validates
