@@ -796,6 +796,17 @@ def test_sc_fits_alone_beside_a_trained_head_and_gives_the_pedestrian_output(rec
         assert says in err and "\n" not in err
 
 
+def hazard_outputs(checkpoint) -> tuple[torch.Tensor, torch.Tensor]:
+    """A tiny checkpoint's hazard output on 4 random frames, as driving reads it and apart."""
+    model, _ = load_model(checkpoint, preset="tiny")
+    frame = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 1, 2, 3]]
+    with torch.no_grad():
+        return (model(frame, prev, cmd, hazard=True)[1],
+                model(frame, prev, cmd, hazard=True, hazard_apart=True)[1])
+
+
 def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(recorded, tmp_path, capsys):
     """--sc-presence: SC's second map per kind is a logit that one is in the path; its nearness
     is read where that map peaks, and counts only where the logit is above 0. Started from a
@@ -830,13 +841,7 @@ def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(reco
     assert tuned["model"]["hazard_sc.priority.2.weight"].shape[0] == 4
     assert all(torch.equal(v, tuned["model"][k]) for k, v in start["model"].items()
                if not k.startswith("hazard_sc."))  # only SC moved
-    model, _ = load_model(tmp_path / "pr" / "last.pt", preset="tiny")
-    frame = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
-    prev = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
-    cmd = torch.eye(6)[[0, 1, 2, 3]]
-    with torch.no_grad():
-        near = model(frame, prev, cmd, hazard=True)[1]
-        apart = model(frame, prev, cmd, hazard=True, hazard_apart=True)[1]
+    near, apart = hazard_outputs(tmp_path / "pr" / "last.pt")
     assert apart.shape == (4, 7)  # the head's three, SC's two nearnesses, SC's two logits
     gated = torch.where(apart[:, 5:] > 0, apart[:, 3:5], torch.zeros(4, 2))
     assert torch.allclose(near[:, :2], torch.maximum(apart[:, :2], gated))
@@ -868,13 +873,7 @@ def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(r
     assert tuned["config"]["model"]["hazard_crossing"] and "fresh" not in tuned.get("init", {})
     assert all(torch.equal(v, tuned["model"][k]) for k, v in start["model"].items())  # all else as it was
     assert not torch.equal(tuned["model"]["hazard_crossing.priority.2.weight"], own["priority.2.weight"])
-    model, _ = load_model(tmp_path / "x" / "last.pt", preset="tiny")
-    frame = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
-    prev = torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8)
-    cmd = torch.eye(6)[[0, 1, 2, 3]]
-    with torch.no_grad():
-        near = model(frame, prev, cmd, hazard=True)[1]
-        apart = model(frame, prev, cmd, hazard=True, hazard_apart=True)[1]
+    near, apart = hazard_outputs(tmp_path / "x" / "last.pt")
     assert near.shape == (4, 4) and apart.shape == (4, 6)  # the head's 3, SC's 2, the crossing map's 1
     assert torch.allclose(near[:, :2], torch.maximum(apart[:, :2], apart[:, 3:5]))
     assert torch.allclose(near[:, 2:], apart[:, [2, 5]])
