@@ -135,7 +135,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     brakes = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
               "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
               "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
-              "max_speed": args.max_speed, "crossing_brake": args.crossing_brake}
+              "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
+              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
@@ -309,6 +310,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
                          "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "
                          "sees takes, and hold an ego slower than 2 m/s within 6 m of it (bid_model/agent.py)")
+    ev.add_argument("--start-cap", type=float, default=None, metavar="MPS",
+                    help="--agent bid: once the ego has stood 1 s, drive its next 12 m (--start-cap-m) no "
+                         "faster than MPS m/s (0: no cap) (bid_model/agent.py)")
+    ev.add_argument("--start-cap-m", type=float, default=None, metavar="M",
+                    help="--agent bid with --start-cap: how many metres of a start it caps (default 12)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

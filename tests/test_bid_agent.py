@@ -181,6 +181,40 @@ def test_max_speed_brakes_an_ego_faster_than_the_cap(checkpoint, tmp_path, capsy
     assert "--max-speed is an option of --agent bid" in capsys.readouterr().err
 
 
+def test_start_cap_holds_the_metres_after_a_stand_under_the_cap(checkpoint, tmp_path, capsys):
+    """With start_cap, standing 1 s makes the next start_cap_m metres a start: faster than the
+    cap there, the agent brakes as max_speed does; past them, or never having stood, it does
+    not."""
+    import numpy as np
+
+    from bid_sim.agents import Observation
+
+    frame = np.random.default_rng(2).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    plain, capped = BIDAgent(checkpoint), BIDAgent(checkpoint, start_cap=2.5, start_cap_m=3.0)
+
+    def drive(speeds):
+        plain.reset(None)
+        capped.reset(None)
+        out = []
+        for v in speeds:
+            head, got = plain.act(Observation(frame, frame, 4, v, None)), capped.act(Observation(frame, frame, 4, v, None))
+            assert got.steer == head.steer
+            out.append((head.accel, got.accel))
+        return out
+
+    never_stood = drive([3.5] * 5)
+    assert all(got == pytest.approx(head, abs=1e-6) for head, got in never_stood)
+    started = drive([0.0] * 10 + [3.5] * 12)  # stood 1 s, then 3 m at 3.5 m/s take 9 steps
+    assert all(got == pytest.approx(head, abs=1e-6) for head, got in started[:10])
+    assert all(got == pytest.approx(min(head, -1.0), abs=1e-6) for head, got in started[10:19])
+    assert all(got == pytest.approx(head, abs=1e-6) for head, got in started[19:])
+    for bad in ({"start_cap": -1.0}, {"start_cap": 2.0, "start_cap_m": 0.0}, {"start_cap_m": 5.0}):
+        with pytest.raises(BidError, match="start_cap"):
+            BIDAgent(checkpoint, **bad)
+    assert main(["evaluate", "--agent", "expert", "--start-cap", "2", "--out", str(tmp_path / "x")]) == 2
+    assert "--start-cap is an option of --agent bid" in capsys.readouterr().err
+
+
 def test_pedestrian_brake_stops_short_of_a_seen_pedestrian_and_holds_near_one():
     from bid_model.agent import pedestrian_brake
 
