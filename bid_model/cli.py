@@ -173,8 +173,19 @@ def _average(args: argparse.Namespace) -> int:
     return 0
 
 
+def _probe(args: argparse.Namespace) -> int:
+    from bid_model.probe import probe_hazards, probe_table, write_probe
+
+    result = probe_hazards(args.checkpoint, args.data, every=args.every, threads=args.threads)
+    print(probe_table(result))
+    if args.out:
+        out = write_probe(result, args.out)
+        print(f"-> {out.with_suffix('.json')}, {out.with_suffix('.md')}")
+    return 0
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    """Add the model's subcommands (train, gradcam, export, average, lesion) to the `bid` parser."""
+    """Add the model's subcommands (train, gradcam, export, average, lesion, probe) to the `bid` parser."""
     t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
                                      "checkpoints and plots)")
     add_train_arguments(t)
@@ -223,3 +234,13 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     le.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke runs)")
     le.add_argument("--out", default=None)
     le.set_defaults(func=_lesion)
+
+    pr = sub.add_parser("probe", help="how often a model's hazard outputs see what is in the path, on "
+                                      "recordings it never trained on (another town, the test weathers)")
+    pr.add_argument("--checkpoint", required=True, help="a checkpoint with a hazard head (--hazard)")
+    pr.add_argument("--data", required=True,
+                    help="folder of recordings, e.g. of `bid record --town 02 --weathers test`")
+    pr.add_argument("--every", type=int, default=1, metavar="N", help="probe every N-th frame (default 1)")
+    pr.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    pr.add_argument("--out", default=None, metavar="PATH", help="also write PATH.json and PATH.md")
+    pr.set_defaults(func=_probe)

@@ -392,6 +392,46 @@ def motion_dropout(n: int, share: float, seed: int) -> np.ndarray:
     return np.random.default_rng((seed, 0x3D0)).random(n) < share
 
 
+def _open_index(folder: Path, cache: bool) -> tuple[_Index, list[Path]]:
+    """(the index of the finished recordings in `folder`, the unfinished ones skipped, warned of);
+    a BidError where there are none, or no frames, or a command no bid-sim recording holds."""
+    files, partial = find_recordings(folder)
+    for p in partial:
+        log.warning("skipping unfinished recording %s (salvage it with `bid recover %s`)", p, p)
+    if not files:
+        raise BidError(f"no finished recordings (*.mcap) in {folder}; record some with `make record TOWN=01`")
+    index = _index(files, keep_jpeg=not cache)
+    if len(index.step) == 0:
+        raise BidError(f"the recordings in {folder} hold no camera frames")
+    bad = np.flatnonzero((index.command < 1) | (index.command > 6))
+    if len(bad):
+        raise BidError(f"{files[index.episode[bad[0]]]} has navigation command {index.command[bad[0]]} "
+                       "out of 1..6: not a bid-sim recording, or damaged")
+    return index, partial
+
+
+def _hazard_targets(index: _Index, cache_dir: Path | None, hazard_ahead_s: float, crossing: bool) -> np.ndarray:
+    """(N, 3) or with `crossing` (N, 4) hazard nearness per index row (see open_recordings)."""
+    columns = [index_hazards(index.files, index.episode, index.step, cache_dir, ped_ahead_s=hazard_ahead_s),
+               index.light_dist]
+    if crossing:
+        columns.append(index_crossings(index.files, index.episode, index.step, cache_dir))
+    return hazard_nearness(np.column_stack(columns))
+
+
+def open_every_frame(folder: str | os.PathLike, frame_hw: tuple[int, int], crossing: bool = False,
+                     cache: bool = True) -> tuple[RecordingDataset, list[dict]]:
+    """Every frame of the recordings in `folder`, in (file, step) order, as recorded (no split,
+    no rebalancing), with the hazard targets (`open_recordings(hazard=True)`; with `crossing`
+    the fourth too), and the facts of each recording (a sample's "episode" indexes them): to
+    measure a trained model on recordings it never saw, another town's or weather's."""
+    folder = Path(folder)
+    index, _ = _open_index(folder, cache)
+    cache_path = build_cache(index, folder, tuple(frame_hw)) if cache else None
+    near = _hazard_targets(index, folder / CACHE_DIR if cache else None, 0.0, crossing)
+    return RecordingDataset(index, np.arange(len(index.step)), frame_hw, cache_path, hazard=near), list(index.facts)
+
+
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
                     cache: bool = True, stop_keep: float = 1.0, start_repeat: int = 1,
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
@@ -414,18 +454,8 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     (hazards.index_crossings, cached likewise).
     """
     folder = Path(folder)
-    files, partial = find_recordings(folder)
-    for p in partial:
-        log.warning("skipping unfinished recording %s (salvage it with `bid recover %s`)", p, p)
-    if not files:
-        raise BidError(f"no finished recordings (*.mcap) in {folder}; record some with `make record TOWN=01`")
-    index = _index(files, keep_jpeg=not cache)
-    if len(index.step) == 0:
-        raise BidError(f"the recordings in {folder} hold no camera frames")
-    bad = np.flatnonzero((index.command < 1) | (index.command > 6))
-    if len(bad):
-        raise BidError(f"{files[index.episode[bad[0]]]} has navigation command {index.command[bad[0]]} "
-                       "out of 1..6: not a bid-sim recording, or damaged")
+    index, partial = _open_index(folder, cache)
+    files = index.files
     cache_path = build_cache(index, folder, tuple(frame_hw)) if cache else None
     train_eps, val_eps = split_episodes(range(len(files)), val_fraction, seed)
     is_val = np.isin(index.episode, val_eps)
@@ -434,15 +464,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel,
                                    hold_repeat)
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
-    near = None
-    if hazard:
-        in_path = index_hazards(index.files, index.episode, index.step, folder / CACHE_DIR if cache else None,
-                                ped_ahead_s=hazard_ahead_s)
-        columns = [in_path, index.light_dist]
-        if crossing:
-            columns.append(index_crossings(index.files, index.episode, index.step,
-                                           folder / CACHE_DIR if cache else None))
-        near = hazard_nearness(np.column_stack(columns))
+    near = _hazard_targets(index, folder / CACHE_DIR if cache else None, hazard_ahead_s, crossing) if hazard else None
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
                              motion_dropout(len(balanced), motion_drop, seed), accel, forecast, near)
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near)

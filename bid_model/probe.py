@@ -1,0 +1,115 @@
+"""What a model's hazard outputs see, measured on recordings it never trained on (`bid probe`).
+
+Training reports how often the hazard head sees the pedestrian, the vehicle and the red light
+in the path on its validation episodes, which are Town01's under the training weathers. The
+closed loop runs in Town02 under the test weathers, where the BID met pedestrians its
+outputs read 0 for (docs/experiments.md). Record the expert there (`bid record --town 02
+--weathers test`: the expert's frames, its path and the actors in /scene, nothing trained on)
+and probe: every frame's outputs against the same targets training uses
+(`recordings.open_every_frame`), overall and per command, weather and density, so that one
+can tell a detector that fails in a new town or light from one that fails at a kind of
+junction.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bid_model.checkpoint import load_model
+from bid_model.data import COMMAND_NAMES, command_one_hot
+from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M
+from bid_model.recordings import open_every_frame
+from bid_model.train import hazard_detection
+from bid_sim.errors import BidError
+
+
+def _group(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]]:
+    """hazard_detection of these rows, with how many frames each share is of."""
+    found = hazard_detection(pred, target)
+    near = (target >= 1.0 - NEAR_M / HAZARD_AHEAD_M).sum(dim=0)
+    none = (target <= 0.0).sum(dim=0)
+    return {kind: {**found[kind], "near_frames": int(near[k]), "none_frames": int(none[k])}
+            for k, kind in enumerate(found)}
+
+
+def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,
+                  batch_size: int = 64, threads: int | None = None) -> dict[str, Any]:
+    """The hazard outputs of `checkpoint` on every `every`-th frame of the recordings in
+    `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
+    read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
+    HAZARD_AHEAD_M, the share read as one all the same), `auc`, and the frame counts; for all
+    frames ("all") and grouped by command, weather and density."""
+    if every < 1:
+        raise BidError(f"every is a frame step, 1 or more; got {every}")
+    if threads:
+        torch.set_num_threads(threads)
+    model, config = load_model(checkpoint)
+    if not config.model.hazard:
+        raise BidError(f"{checkpoint} has no hazard head to probe; train one with --hazard")
+    data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing)
+    rows = np.arange(0, len(data), every)
+    preds, targets, commands, episodes = [], [], [], []
+    with torch.inference_mode():
+        for start in range(0, len(rows), batch_size):
+            items = [data[int(i)] for i in rows[start:start + batch_size]]
+            command = [it["command"] for it in items]
+            speed = (torch.tensor([it["speed_mps"] for it in items], dtype=torch.float32)
+                     if config.model.speed_input else None)
+            out = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
+                        command_one_hot(command), speed, hazard=True)
+            preds.append(out[-1].float())
+            targets.append(torch.stack([it["hazard"] for it in items]))
+            commands += command
+            episodes += [it["episode"] for it in items]
+    pred, target = torch.cat(preds), torch.cat(targets)
+    groups: dict[str, np.ndarray] = {
+        "command": np.array([COMMAND_NAMES[c] for c in commands]),
+        "weather": np.array([facts[e].get("weather", "?") for e in episodes]),
+        "density": np.array([facts[e].get("density", "?") for e in episodes]),
+    }
+    by = {name: {value: _group(pred[torch.from_numpy(labels == value)], target[torch.from_numpy(labels == value)])
+                 for value in sorted(set(labels))}
+          for name, labels in groups.items()}
+    towns = sorted({f.get("town", "?") for f in facts})
+    return {"checkpoint": str(checkpoint), "folder": str(folder), "towns": towns, "recordings": len(facts),
+            "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
+
+
+def _percent(x: float | None) -> str:
+    return "—" if x is None else f"{100 * x:.1f}"
+
+
+def probe_table(result: dict[str, Any]) -> str:
+    """The probe's figures as markdown: one table per kind, a row per group."""
+    lines = [f"# Hazard outputs of {result['checkpoint']} on {result['folder']} "
+             f"({', '.join(result['towns'])}; {result['recordings']} recordings, {result['frames']} frames"
+             f"{'' if result['every'] == 1 else ', one in ' + str(result['every'])})", ""]
+    for kind in (k for k in KINDS if k in result["all"]):
+        lines += [f"## {kind}", "",
+                  f"| group | frames with one within {NEAR_M:g} m | seen % | frames with none | seen wrongly % | AUC |",
+                  "|---|---|---|---|---|---|"]
+        rows = [("all", result["all"])] + [(f"{name} {value}", group) for name, values in result["by"].items()
+                                            for value, group in values.items()]
+        for label, group in rows:
+            g = group[kind]
+            auc = "—" if g["auc"] is None else f"{g['auc']:.3f}"
+            lines.append(f"| {label} | {g['near_frames']} | {_percent(g['seen_near'])} | {g['none_frames']} | "
+                         f"{_percent(g['seen_none'])} | {auc} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_probe(result: dict[str, Any], out: str | os.PathLike) -> Path:
+    """The probe as `out`.json and `out`.md."""
+    import json
+
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(result, indent=1) + "\n")
+    out.with_suffix(".md").write_text(probe_table(result) + "\n")
+    return out

@@ -1,0 +1,86 @@
+"""`bid probe`: a model's hazard outputs measured on every frame of recordings it never saw."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from bid_model.checkpoint import load_model
+from bid_model.data import COMMAND_NAMES, command_one_hot
+from bid_model.probe import probe_hazards, probe_table
+from bid_model.recordings import open_every_frame, open_recordings
+from bid_model.train import hazard_detection
+from bid_sim.cli import main as bid
+from bid_sim.errors import BidError
+
+
+@pytest.fixture(scope="module")
+def hazard_run(recorded, tmp_path_factory):
+    out = tmp_path_factory.mktemp("probe")
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--out", str(out / "plain")]) == 0
+    assert bid([*base, "--init", str(out / "plain" / "last.pt"), "--hazard", "1", "--out", str(out / "hz")]) == 0
+    return out
+
+
+def test_every_frame_is_every_recorded_frame_in_order_with_the_training_targets(recorded):
+    every, facts = open_every_frame(recorded, (32, 96))
+    train, val, _ = open_recordings(recorded, (32, 96), 0.5, 0, hazard=True)
+    assert len(every) == len(train.index.step) and every.rows.tolist() == list(range(len(every)))
+    assert [f["weather"] for f in facts] == ["ClearNoon", "HardRainNoon"]
+    assert np.array_equal(every.hazard, train.hazard)
+    for i in (0, len(every) - 1):
+        sample = every[i]
+        assert sample["step"] == int(train.index.step[i]) and sample["speed_mps"] == float(train.index.speed[i])
+    j = int(val.rows[0])
+    assert torch.equal(every[j]["frame"], val[0]["frame"]) and torch.equal(every[j]["prev_frame"], val[0]["prev_frame"])
+
+
+def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazard_run, one_thread):
+    checkpoint = hazard_run / "hz" / "last.pt"
+    result = probe_hazards(checkpoint, recorded, every=2)
+    data, facts = open_every_frame(recorded, (32, 96))
+    rows = list(range(0, len(data), 2))
+    assert result["frames"] == len(rows) and result["recordings"] == 2 and result["towns"] == ["Town02"]
+    # The same figures as the training's measure on the same frames, the model run by hand.
+    model, _ = load_model(checkpoint)
+    items = [data[i] for i in rows]
+    with torch.no_grad():
+        pred = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
+                     command_one_hot([it["command"] for it in items]), hazard=True)[1]
+    target = torch.stack([it["hazard"] for it in items])
+    want = hazard_detection(pred, target)
+    for kind in ("pedestrian", "vehicle", "red_light"):
+        got = result["all"][kind]
+        for key in ("seen_near", "seen_none", "auc"):
+            assert got[key] == (None if want[kind][key] is None else pytest.approx(want[kind][key]))
+        assert got["none_frames"] == int((target[:, ("pedestrian", "vehicle", "red_light").index(kind)] <= 0).sum())
+        # Each grouping splits the frames: its groups' counts add up to all of them.
+        for name, groups in result["by"].items():
+            assert sum(g[kind]["near_frames"] for g in groups.values()) == got["near_frames"], name
+            assert sum(g[kind]["none_frames"] for g in groups.values()) == got["none_frames"], name
+    assert set(result["by"]["weather"]) == {"ClearNoon", "HardRainNoon"}
+    assert set(result["by"]["command"]) == {COMMAND_NAMES[it["command"]] for it in items}
+    table = probe_table(result)
+    assert "## pedestrian" in table and "| weather HardRainNoon |" in table
+
+
+def test_bid_probe_prints_and_writes_the_tables_and_refuses_bad_input(recorded, hazard_run, tmp_path, capsys,
+                                                                      one_thread):
+    checkpoint = str(hazard_run / "hz" / "last.pt")
+    out = tmp_path / "probe" / "town02"
+    assert bid(["probe", "--checkpoint", checkpoint, "--data", str(recorded), "--every", "3", "--threads", "1",
+                "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "## red_light" in printed and out.with_suffix(".md").read_text().strip() in printed
+    assert json.loads(out.with_suffix(".json").read_text())["every"] == 3
+    for args, says in ((["--checkpoint", str(hazard_run / "plain" / "last.pt"), "--data", str(recorded)],
+                        "no hazard head to probe"),
+                       (["--checkpoint", checkpoint, "--data", str(tmp_path / "none")], "does not exist"),
+                       (["--checkpoint", checkpoint, "--data", str(recorded), "--every", "0"], "every is a frame step")):
+        assert bid(["probe", *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    with pytest.raises(BidError, match="no hazard head"):
+        probe_hazards(hazard_run / "plain" / "last.pt", recorded)
