@@ -40,7 +40,7 @@ def test_every_frame_is_every_recorded_frame_in_order_with_the_training_targets(
 def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazard_run, one_thread):
     checkpoint = hazard_run / "hz" / "last.pt"
     result = probe_hazards(checkpoint, recorded, every=2)
-    data, facts = open_every_frame(recorded, (32, 96))
+    data, _ = open_every_frame(recorded, (32, 96))
     rows = list(range(0, len(data), 2))
     assert result["frames"] == len(rows) and result["recordings"] == 2 and result["towns"] == ["Town02"]
     # The same figures as the training's measure on the same frames, the model run by hand.
