@@ -27,13 +27,24 @@ from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection
 from bid_sim.errors import BidError
 
+# Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
+# see wrongly more too, and a brake can start higher (SEEN_NEARNESS is where the brakes start).
+THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6)
+
 
 def _group(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]]:
-    """hazard_detection of these rows, with how many frames each share is of."""
+    """hazard_detection of these rows, with how many frames each share is of, and the shares
+    seen near and wrongly at each of THRESHOLDS."""
     found = hazard_detection(pred, target)
-    near = (target >= 1.0 - NEAR_M / HAZARD_AHEAD_M).sum(dim=0)
-    none = (target <= 0.0).sum(dim=0)
-    return {kind: {**found[kind], "near_frames": int(near[k]), "none_frames": int(none[k])}
+    near = target >= 1.0 - NEAR_M / HAZARD_AHEAD_M
+    none = target <= 0.0
+
+    def share(k: int, rows: torch.Tensor, threshold: float) -> float | None:
+        return float((pred[rows[:, k], k] >= threshold).float().mean()) if rows[:, k].any() else None
+
+    return {kind: {**found[kind], "near_frames": int(near[:, k].sum()), "none_frames": int(none[:, k].sum()),
+                   "at": {f"{t:g}": {"seen_near": share(k, near, t), "seen_none": share(k, none, t)}
+                          for t in THRESHOLDS}}
             for k, kind in enumerate(found)}
 
 
@@ -100,7 +111,10 @@ def probe_table(result: dict[str, Any]) -> str:
             auc = "—" if g["auc"] is None else f"{g['auc']:.3f}"
             lines.append(f"| {label} | {g['near_frames']} | {_percent(g['seen_near'])} | {g['none_frames']} | "
                          f"{_percent(g['seen_none'])} | {auc} |")
-        lines.append("")
+        at = result["all"][kind]["at"]
+        lines += ["", "| all frames, nearness ≥ | " + " | ".join(at) + " |", "|---" * (len(at) + 1) + "|",
+                  "| seen % | " + " | ".join(_percent(a["seen_near"]) for a in at.values()) + " |",
+                  "| seen wrongly % | " + " | ".join(_percent(a["seen_none"]) for a in at.values()) + " |", ""]
     return "\n".join(lines)
 
 

@@ -1,5 +1,6 @@
 """`bid probe`: a model's hazard outputs measured on every frame of recordings it never saw."""
 
+import itertools
 import json
 
 import numpy as np
@@ -55,7 +56,13 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
         got = result["all"][kind]
         for key in ("seen_near", "seen_none", "auc"):
             assert got[key] == (None if want[kind][key] is None else pytest.approx(want[kind][key]))
-        assert got["none_frames"] == int((target[:, ("pedestrian", "vehicle", "red_light").index(kind)] <= 0).sum())
+        k = ("pedestrian", "vehicle", "red_light").index(kind)
+        assert got["none_frames"] == int((target[:, k] <= 0).sum())
+        # At the brakes' threshold the same as above; higher, never more seen, right or wrong.
+        assert got["at"]["0.2"] == {"seen_near": got["seen_near"], "seen_none": got["seen_none"]}
+        for lower, higher in itertools.pairwise(got["at"].values()):
+            for key in ("seen_near", "seen_none"):
+                assert higher[key] is None or higher[key] <= lower[key]
         # Each grouping splits the frames: its groups' counts add up to all of them.
         for name, groups in result["by"].items():
             assert sum(g[kind]["near_frames"] for g in groups.values()) == got["near_frames"], name
@@ -64,6 +71,7 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
     assert set(result["by"]["command"]) == {COMMAND_NAMES[it["command"]] for it in items}
     table = probe_table(result)
     assert "## pedestrian" in table and "| weather HardRainNoon |" in table
+    assert "| all frames, nearness ≥ | 0.2 | 0.3 | 0.4 | 0.5 | 0.6 |" in table
 
 
 def test_bid_probe_prints_and_writes_the_tables_and_refuses_bad_input(recorded, hazard_run, tmp_path, capsys,
