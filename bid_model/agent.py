@@ -265,6 +265,7 @@ class BIDAgent:
             raise BidError(f"start_cap_m is a distance in metres, more than 0; got {start_cap_m}")
         self.start_cap = start_cap
         self.start_cap_m = START_CAP_M if start_cap_m is None else start_cap_m
+        self._start_stand_steps = round(START_STAND_S / DT_S)
         self._stand_steps = 0  # consecutive steps standing, for start_cap
         self._start_left_m = 0.0  # metres of the start still capped
         if lesions:
@@ -340,7 +341,7 @@ class BIDAgent:
     def _start(self, accel: float, speed_mps: float) -> float:
         """`accel`, braked to keep a start (see `start_cap`) under the cap."""
         self._stand_steps = self._stand_steps + 1 if speed_mps < STILL_MPS else 0
-        if self._stand_steps >= round(START_STAND_S / DT_S):
+        if self._stand_steps >= self._start_stand_steps:
             self._start_left_m = self.start_cap_m
         elif self._start_left_m > 0:
             self._start_left_m -= speed_mps * DT_S

@@ -83,9 +83,12 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         "weather": np.array([facts[e].get("weather", "?") for e in episodes]),
         "density": np.array([facts[e].get("density", "?") for e in episodes]),
     }
-    by = {name: {value: _group(pred[torch.from_numpy(labels == value)], target[torch.from_numpy(labels == value)])
-                 for value in sorted(set(labels))}
-          for name, labels in groups.items()}
+    by: dict[str, dict[str, Any]] = {}
+    for name, labels in groups.items():
+        by[name] = {}
+        for value in sorted(set(labels)):
+            rows_of = torch.from_numpy(labels == value)
+            by[name][value] = _group(pred[rows_of], target[rows_of])
     towns = sorted({f.get("town", "?") for f in facts})
     return {"checkpoint": str(checkpoint), "folder": str(folder), "towns": towns, "recordings": len(facts),
             "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
