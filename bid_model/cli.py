@@ -55,6 +55,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "the command is a turn (LEFT or RIGHT, as shown, mirrored or not): turning, the "
                         "ego meets pedestrians crossing the street it turns into beside others waiting "
                         "on the kerb (1 by default)")
+    p.add_argument("--hazard-moving-weight", type=float, default=None, metavar="W",
+                   help="with --hazard, weigh a frame with a pedestrian in the path W times more where "
+                        "the ego moves (0.3 m/s or faster): the expert has mostly stopped before one is "
+                        "near, so its recordings hold few (1 by default)")
     p.add_argument("--hazard-ahead", type=float, default=None, metavar="S",
                    help="with --hazard, a pedestrian counts in the path also where the recording shows it "
                         "in the path ahead of the ego within S seconds, so that one about to walk in is "

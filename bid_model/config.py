@@ -145,6 +145,8 @@ class TrainConfig:
     hazard_pos_weight: float = 1.0
     # Further weight of a frame with a pedestrian in the path while turning (train.hazard_loss).
     hazard_turn_weight: float = 1.0
+    # Further weight of a frame with a pedestrian in the path while the ego moves (train.hazard_loss).
+    hazard_moving_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)

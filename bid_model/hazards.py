@@ -63,6 +63,7 @@ AHEAD_STEP_S = 0.5  # with ped_ahead_s, where pedestrians will be is looked at t
 _VERSION = "hazard-v1"  # part of the cache key: bump when the definition changes
 ONTO_S = 1.0  # a pedestrian walking onto a crossing within this long is on it already
 WALKING_MPS = 0.3  # slower is standing
+MOVING_MPS = 0.3  # the ego moves at this speed or faster (train --hazard-moving-weight, bid probe)
 AWAY_M = 0.5  # beyond the corridor by this, a pedestrian walking away from the path is no one's
 _CROSSING_VERSION = "crossing-v2"
 

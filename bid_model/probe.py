@@ -6,9 +6,9 @@ closed loop runs in Town02 under the test weathers, where the BID met pedestrian
 outputs read 0 for (docs/experiments.md). Record the expert there (`bid record --town 02
 --weathers test`: the expert's frames, its path and the actors in /scene, nothing trained on)
 and probe: every frame's outputs against the same targets training uses
-(`recordings.open_every_frame`), overall and per command, weather and density, so that one
-can tell a detector that fails in a new town or light from one that fails at a kind of
-junction.
+(`recordings.open_every_frame`), overall and per command, weather, density and whether the
+ego stands or moves, so that one can tell a detector that fails in a new town or light from
+one that fails at a kind of junction, or only while the scene moves past.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 
 from bid_model.checkpoint import load_model
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M
+from bid_model.hazards import HAZARD_AHEAD_M, KINDS, MOVING_MPS, NEAR_M
 from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection
 from bid_sim.errors import BidError
@@ -54,7 +54,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
     read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
     HAZARD_AHEAD_M, the share read as one all the same), `auc`, and the frame counts; for all
-    frames ("all") and grouped by command, weather and density."""
+    frames ("all") and grouped by command, weather, density and "ego" (standing, or moving at
+    MOVING_MPS or faster)."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     if threads:
@@ -64,7 +65,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         raise BidError(f"{checkpoint} has no hazard head to probe; train one with --hazard")
     data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing)
     rows = np.arange(0, len(data), every)
-    preds, targets, commands, episodes = [], [], [], []
+    preds, targets, commands, episodes, speeds = [], [], [], [], []
     with torch.inference_mode():
         for start in range(0, len(rows), batch_size):
             items = [data[int(i)] for i in rows[start:start + batch_size]]
@@ -77,11 +78,13 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             targets.append(torch.stack([it["hazard"] for it in items]))
             commands += command
             episodes += [it["episode"] for it in items]
+            speeds += [float(it["speed_mps"]) for it in items]
     pred, target = torch.cat(preds), torch.cat(targets)
     groups: dict[str, np.ndarray] = {
         "command": np.array([COMMAND_NAMES[c] for c in commands]),
         "weather": np.array([facts[e].get("weather", "?") for e in episodes]),
         "density": np.array([facts[e].get("density", "?") for e in episodes]),
+        "ego": np.where(np.array(speeds) >= MOVING_MPS, "moving", "standing"),
     }
     by: dict[str, dict[str, Any]] = {}
     for name, labels in groups.items():

@@ -58,7 +58,7 @@ from bid_model.config import (
     with_variant,
 )
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.hazards import HAZARD_AHEAD_M, KINDS, NEAR_M, PATH_KINDS, SEEN_NEARNESS
+from bid_model.hazards import HAZARD_AHEAD_M, KINDS, MOVING_MPS, NEAR_M, PATH_KINDS, SEEN_NEARNESS
 from bid_model.model import BID, SPEED_SCALE_MPS, hazard_kinds, resize_grid_tokens
 from bid_model.plots import plot_metrics, plot_sequence
 from bid_sim.errors import BidError
@@ -137,32 +137,42 @@ def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Ten
 
 
 def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: float = 1.0,
-                   command: torch.Tensor | None = None) -> torch.Tensor:
+                   command: torch.Tensor | None = None, moving_weight: float = 1.0,
+                   speed_mps: torch.Tensor | None = None) -> torch.Tensor:
     """(B, K) weights of the hazard targets' entries: one with an actor in the path (target > 0)
     weighs `pos_weight`; with `command` (B, n one-hot) a pedestrian in the path while turning
-    (LEFT, RIGHT) `turn_weight` times more again."""
+    (LEFT, RIGHT) `turn_weight` times more again; with `speed_mps` (B,) one in the path while
+    the ego moves (MOVING_MPS or faster) `moving_weight` times more again."""
     weight = torch.where(target > 0, pos_weight, 1.0)
+    ped = KINDS.index("pedestrian")
     if command is not None and turn_weight != 1.0:
         turning = command[:, [LEFT - 1, RIGHT - 1]].sum(dim=1) > 0  # one-hot column = command − 1
-        crossing = (target[:, KINDS.index("pedestrian")] > 0) & turning
-        weight[:, KINDS.index("pedestrian")] *= torch.where(crossing, turn_weight, 1.0)
+        crossing = (target[:, ped] > 0) & turning
+        weight[:, ped] *= torch.where(crossing, turn_weight, 1.0)
+    if speed_mps is not None and moving_weight != 1.0:
+        approaching = (target[:, ped] > 0) & (speed_mps.reshape(-1) >= MOVING_MPS)
+        weight[:, ped] *= torch.where(approaching, moving_weight, 1.0)
     return weight
 
 
 def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
-                turn_weight: float = 1.0, command: torch.Tensor | None = None) -> torch.Tensor:
+                turn_weight: float = 1.0, command: torch.Tensor | None = None,
+                moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
     """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
     batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
     about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
     than sure, and with weight w it says how near one is wherever it judges the odds above
     1 / (1 + w). `turn_weight` weighs the pedestrians in the path while turning more again:
-    turning, the ego meets many more waiting on the kerb beside its path than in it."""
-    weight = hazard_weights(target, pos_weight, turn_weight, command)
+    turning, the ego meets many more waiting on the kerb beside its path than in it.
+    `moving_weight` weighs those in the path of a moving ego more: the expert has mostly
+    stopped before a pedestrian is near, so such frames are rare in its recordings."""
+    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps)
     return (weight * (pred.float() - target).abs()).sum() / weight.sum()
 
 
 def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
-                  turn_weight: float = 1.0, command: torch.Tensor | None = None) -> torch.Tensor:
+                  turn_weight: float = 1.0, command: torch.Tensor | None = None,
+                  moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
     """Loss of SC with presence (areas.SC; out (B, 2K): nearness, then logits) against the
     nearness targets (B, K): the logits' binary cross-entropy on "one is in the path", its
     entries weighted by hazard_weights (it says yes where it judges the odds above 1 / (1 +
@@ -171,7 +181,7 @@ def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1
     k = target.shape[1]
     near, logit = out[:, :k].float(), out[:, k:].float()
     present = target > 0
-    weight = hazard_weights(target, pos_weight, turn_weight, command)
+    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps)
     bce = nn.functional.binary_cross_entropy_with_logits(logit, present.float(), reduction="none")
     distance = (near - target).abs()[present].mean() if present.any() else near.sum() * 0.0
     return (weight * bce).sum() / weight.sum() + distance
@@ -536,7 +546,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             near = batch["hazard"].to(device)
             k, crossing = len(PATH_KINDS), base.config.hazard_crossing
             own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
-            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2])
+            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight,
+                       torch.as_tensor(batch["speed_mps"], dtype=torch.float32).to(device))
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if apart:
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
@@ -879,7 +890,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
-             "--hazard-turn-weight": args.hazard_turn_weight, "--hazard-ahead": args.hazard_ahead,
+             "--hazard-turn-weight": args.hazard_turn_weight,
+             "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
@@ -953,7 +965,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         tc = dataclasses.replace(tc, lambda_hazard=args.hazard)
     for flag, field, weighs in (("--hazard-pos-weight", "hazard_pos_weight", "frames with an actor in the path"),
                                 ("--hazard-turn-weight", "hazard_turn_weight",
-                                 "pedestrians in the path while turning")):
+                                 "pedestrians in the path while turning"),
+                                ("--hazard-moving-weight", "hazard_moving_weight",
+                                 "pedestrians in the path of a moving ego")):
         weight = getattr(args, field)
         if weight is None:
             continue

@@ -9,6 +9,7 @@ import torch
 
 from bid_model.checkpoint import load_model
 from bid_model.data import COMMAND_NAMES, command_one_hot
+from bid_model.hazards import MOVING_MPS
 from bid_model.probe import probe_hazards, probe_table
 from bid_model.recordings import open_every_frame, open_recordings
 from bid_model.train import hazard_detection
@@ -69,6 +70,12 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
             assert sum(g[kind]["none_frames"] for g in groups.values()) == got["none_frames"], name
     assert set(result["by"]["weather"]) == {"ClearNoon", "HardRainNoon"}
     assert set(result["by"]["command"]) == {COMMAND_NAMES[it["command"]] for it in items}
+    # Standing or moving: split at MOVING_MPS of the recorded speed (the episodes hold both).
+    moving = torch.tensor([float(it["speed_mps"]) >= MOVING_MPS for it in items])
+    assert set(result["by"]["ego"]) == {"moving", "standing"}
+    red = target[:, 2]
+    assert result["by"]["ego"]["moving"]["red_light"]["none_frames"] == int((red[moving] <= 0).sum())
+    assert result["by"]["ego"]["standing"]["red_light"]["none_frames"] == int((red[~moving] <= 0).sum())
     table = probe_table(result)
     assert "## pedestrian" in table and "| weather HardRainNoon |" in table
     assert "| all frames, nearness ≥ | 0.2 | 0.3 | 0.4 | 0.5 | 0.6 |" in table

@@ -683,6 +683,26 @@ def test_hazard_turn_weight_weighs_pedestrians_met_turning():
     assert fitted(8.0) == pytest.approx(0.6, abs=0.02)
 
 
+def test_hazard_moving_weight_weighs_pedestrians_in_the_path_of_a_moving_ego():
+    """--hazard-moving-weight: a pedestrian in the path while the ego moves (0.3 m/s or
+    faster) weighs that much more, on top of the other weights; one met standing, a vehicle met
+    moving and a moving ego with nobody in the path weigh as before."""
+    from bid_model.train import MOVING_MPS, hazard_loss, hazard_weights, presence_loss
+
+    target = torch.tensor([[0.6, 0.0], [0.6, 0.0], [0.0, 0.5], [0.0, 0.0]])
+    speed = torch.tensor([5.0, 0.0, 5.0, MOVING_MPS])
+    weight = hazard_weights(target, 2.0, moving_weight=4.0, speed_mps=speed)
+    assert weight.tolist() == [[8.0, 1.0], [2.0, 1.0], [1.0, 2.0], [1.0, 1.0]]
+    pred = torch.zeros(4, 2)
+    want = (0.6 * 8 + 0.6 * 2 + 0.5 * 2) / float(weight.sum())
+    assert hazard_loss(pred, target, 2.0, moving_weight=4.0, speed_mps=speed) == pytest.approx(want)
+    assert hazard_loss(pred, target, 2.0, speed_mps=speed) == pytest.approx(hazard_loss(pred, target, 2.0))
+    # The presence loss weighs its cross-entropy the same way: heavier where the moving ego meets one.
+    out = torch.zeros(4, 4)
+    out[:, 2] = -2.0  # "no pedestrian in the path" everywhere: wrong most where one is
+    assert presence_loss(out, target, 1.0, moving_weight=4.0, speed_mps=speed) > presence_loss(out, target, 1.0) + 0.1
+
+
 def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     import argparse
 
@@ -697,7 +717,9 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     assert run.train.hazard_pos_weight == 8.0 and run.train.hazard_ahead_s == 0.0
     assert run.train.hazard_turn_weight == 1.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-turn-weight", "3"]))
-    assert run.train.hazard_turn_weight == 3.0
+    assert run.train.hazard_turn_weight == 3.0 and run.train.hazard_moving_weight == 1.0
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-moving-weight", "6"]))
+    assert run.train.hazard_moving_weight == 6.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-ahead", "1.5"]))
     assert run.train.hazard_ahead_s == 1.5
     for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
@@ -710,7 +732,9 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
                         (["--hazard", "1", "--hazard-turn-weight", "0"], "1 or more"),
                         (["--hazard", "1", "--hazard-turn-weight", "inf"], "1 or more"),
                         (["--hazard", "1", "--hazard-pos-weight", "nan"], "1 or more"),
-                        (["--hazard-turn-weight", "3"], "add --hazard WEIGHT")):
+                        (["--hazard-turn-weight", "3"], "add --hazard WEIGHT"),
+                        (["--hazard", "1", "--hazard-moving-weight", "0.5"], "1 or more"),
+                        (["--hazard-moving-weight", "3"], "add --hazard WEIGHT")):
         assert bid(["train", "--preset", "tiny", *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
