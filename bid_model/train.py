@@ -527,7 +527,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
                dynamic_ncols=True, mininterval=1.0)
     for i, batch in enumerate(bar):
         inputs, target = batch_inputs(batch, device)
-        inputs = (*inputs[:3], noisy_speed(inputs[3], tc.speed_noise))
+        speed_mps = inputs[3]  # as recorded: the hazard weights read it, the network the noisy one
+        inputs = (*inputs[:3], noisy_speed(speed_mps, tc.speed_noise))
         if tc.augment > 0:
             inputs = (*photometric(inputs[0], inputs[1], tc.augment), *inputs[2:])
         if tc.shift > 0:
@@ -546,8 +547,7 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             near = batch["hazard"].to(device)
             k, crossing = len(PATH_KINDS), base.config.hazard_crossing
             own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
-            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight,
-                       torch.as_tensor(batch["speed_mps"], dtype=torch.float32).to(device))
+            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps)
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if apart:
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
