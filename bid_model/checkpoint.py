@@ -97,7 +97,7 @@ AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
              "hazard": (False, "hazard_", "lambda_hazard")}  # hazard_head., hazard_sc., hazard_crossing.
 # Fields that shape a head beside its own (→ their value without it): heads alike agree on them too.
 HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False, "hazard_attend": False,
-                                                   "hazard_sc": False, "sc_presence": False,
+                                                   "hazard_sc": False, "sc_presence": False, "sc_still": False,
                                                    "hazard_crossing": False}}
 
 

@@ -76,6 +76,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "kind, fitted by cross-entropy weighted as --hazard-pos-weight and "
                         "--hazard-turn-weight say) and its nearness is fitted only where one is: it "
                         "reads a nearness where it says yes, none elsewhere")
+    p.add_argument("--sc-still", action="store_true", default=None,
+                   help="with --hazard-sc, SC reads frame t alone (its change since t-1 zeroed): the "
+                        "change is mostly the ego's own motion, from which SC learnt that a moving car "
+                        "has nothing in its path; --init from a checkpoint with SC keeps its weights")
     p.add_argument("--hazard-crossing", action="store_true", default=None,
                    help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
                         "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")

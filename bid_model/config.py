@@ -31,6 +31,8 @@ INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
+# Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
+READ_FIELDS = frozenset({"sc_still"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -87,6 +89,11 @@ class ModelConfig:
     # its nearness (areas.SC): it reads a nearness only where it says yes, rather than the
     # blend of "none" and "near" an L1 fit on both gives an actor it is unsure of.
     sc_presence: bool = False
+    # SC reads frame t alone, its change since t−1 zeroed: that change is the ego's own motion as
+    # much as the actors', and SC fitted on it read "moving, so nothing in the path" (its
+    # pedestrians were seen 5 % of the time while moving, 27 % with the change zeroed;
+    # docs/experiments.md). Still, a moving car's frame looks like a standing one's.
+    sc_still: bool = False
     # A fourth hazard output from a second SC map of its own (BID.hazard_crossing): how near the
     # next crossing on the path with a pedestrian on it is (bid_model.hazards.crossing_distances).
     hazard_crossing: bool = False
@@ -105,6 +112,8 @@ class ModelConfig:
             raise ValueError("hazard_sc (SC) reads beside the hazard head: it needs hazard")
         if self.sc_presence and not self.hazard_sc:
             raise ValueError("sc_presence is a part of SC: it needs hazard_sc")
+        if self.sc_still and not self.hazard_sc:
+            raise ValueError("sc_still is how SC reads: it needs hazard_sc")
         if self.hazard_crossing and not (self.hazard_sc and self.hazard_light):
             raise ValueError("hazard_crossing is the fourth hazard output, beside SC: it needs hazard_sc and hazard_light")
         if any(not t > 0 for t in self.forecast_s):

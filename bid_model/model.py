@@ -272,7 +272,8 @@ class BID(nn.Module):
             streams["speed"] = self.speed_token(speed)
         feats["MPC"] = self._area("MPC", streams)
         if self.hazard_sc is not None:
-            feats["SC"] = self.hazard_sc(self._normalise(frame_t), self._normalise(frame_prev),
+            seen = self._normalise(frame_t)
+            feats["SC"] = self.hazard_sc(seen, seen if self.config.sc_still else self._normalise(frame_prev),
                                          command_onehot.float())
         if self.hazard_crossing is not None:
             feats["crossing"] = self.hazard_crossing(self._normalise(frame_t), self._normalise(frame_prev),

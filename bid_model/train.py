@@ -51,6 +51,7 @@ from bid_model.checkpoint import check_preset, git_hash, load_checkpoint, save_c
 from bid_model.config import (
     FORECAST_S,
     INIT_FIELDS,
+    READ_FIELDS,
     RESIZE_FIELDS,
     RunConfig,
     TrainConfig,
@@ -715,7 +716,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         start_from = load_checkpoint(init)
         theirs = RunConfig.from_dict(start_from["config"]).model
         diff = [f.name for f in dataclasses.fields(theirs) if getattr(theirs, f.name) != getattr(config.model, f.name)]
-        if set(diff) - INIT_FIELDS - RESIZE_FIELDS:
+        if set(diff) - INIT_FIELDS - RESIZE_FIELDS - READ_FIELDS:
             raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
                            f"train with its preset and flags, or start from scratch")
     tc = config.train
@@ -893,7 +894,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-turn-weight": args.hazard_turn_weight,
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
-             "--sc-presence": args.sc_presence, "--hazard-crossing": args.hazard_crossing,
+             "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
+             "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
     if args.resume:
@@ -994,6 +996,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard_sc:
             raise BidError("--sc-presence is a part of SC: add --hazard-sc (and --hazard WEIGHT)")
         model = dataclasses.replace(model, sc_presence=True)
+    if args.sc_still:
+        if not model.hazard_sc:
+            raise BidError("--sc-still is how SC reads: add --hazard-sc (and --hazard WEIGHT)")
+        model = dataclasses.replace(model, sc_still=True)
     if args.hazard_crossing:
         if not model.hazard_sc:
             raise BidError("--hazard-crossing is a second SC map beside SC: add --hazard-sc (and --hazard WEIGHT)")

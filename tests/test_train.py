@@ -876,6 +876,34 @@ def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(reco
     assert "add --hazard-sc" in err and "\n" not in err
 
 
+def test_sc_still_reads_frame_t_alone_and_starts_from_a_moving_sc(recorded, tmp_path, capsys):
+    """--sc-still: SC reads frame t with its change since t−1 zeroed, so what it says does not
+    depend on frame t−1 (the ego's own motion); --init from a run whose SC read the change keeps
+    every weight, and training moves SC alone."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--hazard", "1", "--hazard-sc", "--out", str(tmp_path / "sc")]) == 0
+    assert bid([*base, "--init", str(tmp_path / "sc" / "last.pt"), "--hazard", "1", "--hazard-sc", "--sc-still",
+                "--train-only", "SC", "--out", str(tmp_path / "still")]) == 0
+    start, still = load_checkpoint(tmp_path / "sc" / "last.pt"), load_checkpoint(tmp_path / "still" / "last.pt")
+    assert still["config"]["model"]["sc_still"] and "fresh" not in still.get("init", {})
+    assert all(torch.equal(v, still["model"][k]) for k, v in start["model"].items()
+               if not k.startswith("hazard_sc."))  # only SC may move
+    model, _ = load_model(tmp_path / "still" / "last.pt", preset="tiny")
+    moving, _ = load_model(tmp_path / "sc" / "last.pt", preset="tiny")
+    model.eval(), moving.eval()
+    frame = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 3]]
+    with torch.no_grad():
+        sc = [model.forward_features(frame, p, cmd)["SC"] for p in (prev, frame)]
+        sc_moving = [moving.forward_features(frame, p, cmd)["SC"] for p in (prev, frame)]
+    assert torch.equal(sc[0], sc[1])  # frame t−1 changes nothing
+    assert not torch.equal(sc_moving[0], sc_moving[1])  # where SC reads the change, it does
+    assert bid([*base, "--hazard", "1", "--sc-still", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "add --hazard-sc" in err and "\n" not in err
+
+
 def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(recorded, tmp_path, capsys):
     """--hazard-crossing: a second SC map says how near an occupied crossing on the path is, the
     hazard output's fourth column. Started from a run with SC, it starts as that SC with its
