@@ -8,6 +8,7 @@ the measured speed; never the privileged snapshot. Registered as the "bid" entry
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -208,6 +209,9 @@ class BIDAgent:
     in normal traffic (seed 0) 7 came 3.6-4.7 s after it moved off from a stand at a junction,
     at 3.3-4.5 m/s, people walking into its side or front on the crossing beyond, while its
     hazard outputs read nothing (docs/experiments.md).
+    sc_still: for a model with SC (`--hazard-sc`), SC reads frame t alone, its change since t−1
+    zeroed (model config sc_still, `bid train --sc-still`): SC fitted on the change reads a
+    moving ego's path as clear (docs/experiments.md, "SC reads the ego's own motion").
     """
 
     uses_camera = True
@@ -217,9 +221,15 @@ class BIDAgent:
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
                  move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None,
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
-                 start_cap_m: float | None = None):
+                 start_cap_m: float | None = None, sc_still: bool = False):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
+        if sc_still:
+            if not self.config.model.hazard_sc:
+                raise BidError(f"{checkpoint} has no SC to read frame t alone; train one with --hazard-sc, "
+                               "or drop sc_still")
+            model_config = dataclasses.replace(self.config.model, sc_still=True)
+            self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)
         if not forecast_brake >= 0:
             raise BidError(f"forecast_brake is a gain, 0 or more; got {forecast_brake}")
         if forecast_brake > 0 and not self.config.model.forecast_s:

@@ -136,7 +136,7 @@ def _evaluate(args: argparse.Namespace) -> int:
               "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
               "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
               "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
-              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m}
+              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
@@ -315,6 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "faster than MPS m/s (0: no cap) (bid_model/agent.py)")
     ev.add_argument("--start-cap-m", type=float, default=None, metavar="M",
                     help="--agent bid with --start-cap: how many metres of a start it caps (default 12)")
+    ev.add_argument("--sc-still", action="store_true", default=None,
+                    help="--agent bid with SC (--hazard-sc): SC reads frame t alone, its change since t-1 "
+                         "zeroed, as a checkpoint trained with --sc-still does (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

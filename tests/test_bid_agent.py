@@ -479,3 +479,25 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 
+
+
+def test_sc_still_makes_sc_read_frame_t_alone_and_leaves_the_control_head(checkpoint):
+    """`bid evaluate --sc-still`: the shipped SC reads frame t with its change since t−1 zeroed;
+    the control head reads both frames as before. A checkpoint without SC is refused."""
+    import torch
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    still, plain = BIDAgent(shipped, sc_still=True), BIDAgent(shipped)
+    assert still.config.model.sc_still and not plain.config.model.sc_still
+    frame, prev = torch.randint(0, 256, (2, 1, 3, *plain.hw), dtype=torch.uint8,
+                                generator=torch.Generator().manual_seed(1))
+    cmd = torch.zeros(1, 6)
+    cmd[0, 2] = 1.0
+    speed = torch.tensor([5.0])
+    with torch.inference_mode():
+        seen = still.model.forward_features(frame, prev, cmd, speed)
+        assert torch.equal(seen["SC"], plain.model.forward_features(frame, frame, cmd, speed)["SC"])
+        assert not torch.equal(seen["SC"], plain.model.forward_features(frame, prev, cmd, speed)["SC"])
+        assert torch.equal(still.model(frame, prev, cmd, speed), plain.model(frame, prev, cmd, speed))
+    with pytest.raises(BidError, match="no SC"):
+        BIDAgent(checkpoint, sc_still=True)
