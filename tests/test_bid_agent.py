@@ -480,7 +480,6 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 
 
-
 def test_sc_still_makes_sc_read_frame_t_alone_and_leaves_the_control_head(checkpoint):
     """`bid evaluate --sc-still`: the shipped SC reads frame t with its change since t−1 zeroed;
     the control head reads both frames as before. A checkpoint without SC is refused."""
