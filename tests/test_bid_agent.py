@@ -338,6 +338,17 @@ def test_clear_to_move_off_needs_nothing_seen_within_8_m():
     assert not clear_to_move_off((0.0, 0.0, 0.9))  # at the stop line of a red light
 
 
+def one_input(hw, seed: int, command: int, speed_mps: float):
+    """A batch of one: random frames t and t−1 (uint8), a one-hot command and a speed."""
+    import torch
+
+    frame, prev = torch.randint(0, 256, (2, 1, 3, *hw), dtype=torch.uint8,
+                                generator=torch.Generator().manual_seed(seed))
+    cmd = torch.zeros(1, 6)
+    cmd[0, command] = 1.0
+    return frame, prev, cmd, torch.tensor([speed_mps])
+
+
 def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
     """`make demo` and `make evaluate` drive checkpoints/bid_small.pt with the Makefile's
     SHIPPED_DRIVE: its hazard head must have the three outputs those brakes and move-off read,
@@ -358,11 +369,7 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
     assert agent.pedestrian_hold_m == 6.0 and agent.max_speed == 9.0
     assert agent.config.model.hazard_sc
     plain = BIDAgent(shipped)
-    frame, prev = torch.randint(0, 256, (2, 1, 3, *plain.hw), dtype=torch.uint8,
-                                generator=torch.Generator().manual_seed(0))
-    cmd = torch.zeros(1, 6)
-    cmd[0, 3] = 1.0
-    speed = torch.tensor([3.0])
+    frame, prev, cmd, speed = one_input(plain.hw, seed=0, command=3, speed_mps=3.0)
     with torch.inference_mode():
         control, near = agent.model(frame, prev, cmd, speed, hazard=True)
         assert torch.equal(control, plain.model(frame, prev, cmd, speed))
@@ -488,11 +495,7 @@ def test_sc_still_makes_sc_read_frame_t_alone_and_leaves_the_control_head(checkp
     shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
     still, plain = BIDAgent(shipped, sc_still=True), BIDAgent(shipped)
     assert still.config.model.sc_still and not plain.config.model.sc_still
-    frame, prev = torch.randint(0, 256, (2, 1, 3, *plain.hw), dtype=torch.uint8,
-                                generator=torch.Generator().manual_seed(1))
-    cmd = torch.zeros(1, 6)
-    cmd[0, 2] = 1.0
-    speed = torch.tensor([5.0])
+    frame, prev, cmd, speed = one_input(plain.hw, seed=1, command=2, speed_mps=5.0)
     with torch.inference_mode():
         seen = still.model.forward_features(frame, prev, cmd, speed)
         assert torch.equal(seen["SC"], plain.model.forward_features(frame, frame, cmd, speed)["SC"])
