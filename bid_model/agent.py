@@ -192,6 +192,10 @@ class BIDAgent:
     least at MOVE_OFF_ACCEL until START_MPS or until the head sees something (0: standing and
     moving off are the control head's call). It answers a control head that stands where
     nothing is in the way (docs/experiments.md).
+    move_off_to: m/s; with move_off, the speed it moves the ego off to (START_MPS when None). A
+    control head that waits where the expert would go brakes a moved-off ego back to standing
+    from START_MPS; moved off to 4 m/s, crowded routes finish more often, with more contacts
+    (docs/experiments.md, "Out of time in crowded traffic").
     path_memory: seconds; a pedestrian or vehicle seen in the path within REMEMBER_M is remembered
     this long once the hazard head loses it (PathMemory), for the brakes and move-off, and a
     vehicle within VEHICLE_HOLD_M holds a slow ego (`vehicle_brake`'s hold) (0: neither).
@@ -221,7 +225,7 @@ class BIDAgent:
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
                  move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None,
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
-                 start_cap_m: float | None = None, sc_still: bool = False):
+                 start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         if sc_still:
@@ -254,6 +258,11 @@ class BIDAgent:
         self.hazard_brake, self.vehicle_brake, self.light_brake = hazard_brake, vehicle_brake, light_brake
         self.crossing_brake = crossing_brake
         self.move_off_steps = round(move_off / DT_S) if move_off > 0 else 0
+        if move_off_to is not None and not move_off:
+            raise BidError("move_off_to is the speed move_off drives to; add move_off, or drop it")
+        if move_off_to is not None and not 0 < move_off_to < 100:
+            raise BidError(f"move_off_to is a speed in m/s, more than 0; got {move_off_to}")
+        self.move_off_to = START_MPS if move_off_to is None else move_off_to
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
             raise BidError("path_memory is read by the brakes and move-off; add hazard_brake, vehicle_brake "
@@ -344,7 +353,7 @@ class BIDAgent:
         self._still_steps = self._still_steps + 1 if speed_mps < STILL_MPS and clear else 0
         if self._still_steps >= self.move_off_steps and clear:
             self._moving_off = True
-        if self._moving_off and (not clear or speed_mps >= START_MPS):
+        if self._moving_off and (not clear or speed_mps >= self.move_off_to):
             self._moving_off = False
         return max(accel, MOVE_OFF_ACCEL) if self._moving_off else accel
 

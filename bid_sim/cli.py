@@ -136,7 +136,8 @@ def _evaluate(args: argparse.Namespace) -> int:
               "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
               "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
               "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
-              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still}
+              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
+              "move_off_to": args.move_off_to}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
@@ -294,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="--agent bid with a model trained with --hazard: once the ego has stood S seconds "
                          "and the hazard head sees no red light, pedestrian or vehicle within 8 m, "
                          "move off at accel 0.5 whatever the control head says (bid_model/agent.py)")
+    ev.add_argument("--move-off-to", type=float, default=None, metavar="MPS",
+                    help="--agent bid with --move-off: the speed moving off drives the ego to before the "
+                         "control head has it again (default 2) (bid_model/agent.py)")
     ev.add_argument("--path-memory", type=float, default=None, metavar="S",
                     help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
                          "the path within 6 m counts for the brakes and move-off S seconds after the head "

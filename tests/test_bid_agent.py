@@ -460,6 +460,16 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     assert going.act(Observation(frame, frame, 4, 2.5, None)).accel == pytest.approx(-1.0, abs=1e-5)  # moved off
     going.reset(None)
     assert going.act(still).accel == pytest.approx(-1.0, abs=1e-5)
+    # move_off_to: moving off drives on to that speed before the control head has the ego again.
+    further = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.3, move_off_to=4.0)
+    further.model.load_state_dict(going.model.state_dict())
+    got = [further.act(Observation(frame, frame, 4, v, None)).accel for v in (0.0, 0.0, 0.0, 2.5, 3.9, 4.0)]
+    assert got == pytest.approx([-1.0, -1.0] + [MOVE_OFF_ACCEL] * 3 + [-1.0], abs=1e-5)
+    with pytest.raises(BidError, match="move_off_to is the speed move_off drives to"):
+        BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0, move_off_to=4.0)
+    for to in (0.0, -1.0, float("nan")):
+        with pytest.raises(BidError, match="move_off_to is a speed in m/s"):
+            BIDAgent(tmp_path / "hz" / "last.pt", move_off=8.0, move_off_to=to)
     # A head trained before the red-light output existed: light_brake is refused, the rest drives.
     old = load_checkpoint(tmp_path / "hz" / "last.pt")
     old["config"]["model"]["hazard_light"] = False
@@ -482,7 +492,7 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         with pytest.raises(BidError, match="pedestrian_hold is a distance from 0 to 25 m"):
             BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, pedestrian_hold=hold)
     for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off", "--path-memory",
-                 "--pedestrian-hold"):
+                 "--pedestrian-hold", "--move-off-to"):
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 
