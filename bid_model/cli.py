@@ -29,6 +29,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="share of training samples given a random lighting change (bid_model/augment.py)")
     p.add_argument("--hard-repeat", type=int, default=None, metavar="N",
                    help="train on each frame of hard steering or braking N times (recordings.balance_rows)")
+    p.add_argument("--start-repeat", type=int, default=None, metavar="N",
+                   help="train on each moving-off frame (below 2 m/s, throttle) N times, the repeats shown "
+                        "standing still (recordings.balance_rows; small: 3)")
     p.add_argument("--hold-repeat", type=int, default=None, metavar="N",
                    help="keep every frame where the expert stands or brakes below 2 m/s with no red "
                         "light ahead (a yield: to pedestrians on the crossing, a car) and train on it "

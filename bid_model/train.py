@@ -890,6 +890,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
+             "--start-repeat": args.start_repeat,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
              "--hazard-turn-weight": args.hazard_turn_weight,
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
@@ -918,6 +919,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
                                    ("--seed", args.seed, "seed", 0),
                                    ("--hard-repeat", args.hard_repeat, "hard_repeat", 1),
                                    ("--hold-repeat", args.hold_repeat, "hold_repeat", 1),
+                                   ("--start-repeat", args.start_repeat, "start_repeat", 1),
                                    ("--brake-lookahead", args.brake_lookahead, "brake_lookahead", 1)):
         if value is not None:
             if value < ok:

@@ -12,8 +12,8 @@ from bid_sim import metrics as m
 from bid_sim.agents import Agent, EpisodeInfo, Observation
 from bid_sim.ego import EgoParams, EgoState, step
 from bid_sim.errors import BidError
-from bid_sim.infractions import DEVIATION_M, Monitor
-from bid_sim.metrics import Infraction
+from bid_sim.infractions import BLOCKED_SPEED_MPS, DEVIATION_M, Monitor
+from bid_sim.metrics import STANDING_AHEAD_M, STANDING_LIGHT_M, STANDING_REASONS, Infraction
 from bid_sim.routes import (
     COMMAND_NAMES,
     Route,
@@ -23,7 +23,7 @@ from bid_sim.routes import (
     road_graph,
     route_by_index,
 )
-from bid_sim.snapshot import OFF, EgoView, Snapshot, light_code
+from bid_sim.snapshot import OFF, RED, YELLOW, Actors, EgoView, Snapshot, light_code
 from bid_sim.town_map import load_town_map
 from bid_sim.towns import Town, resolve_town
 from bid_sim.weather import check_weather
@@ -57,6 +57,9 @@ class EpisodeResult:
     outside_lane_m: float
     replans: int
     infractions: list[Infraction] = field(default_factory=list)
+    # Seconds standing (slower than BLOCKED_SPEED_MPS) by what stood there: at a red or amber
+    # light, behind a vehicle, before a pedestrian, or with nothing near (standing_reason).
+    standing_s: dict[str, float] = field(default_factory=dict)
     metrics: dict[str, float] = field(default_factory=dict)
     version: str = __version__
 
@@ -138,6 +141,7 @@ def run_episode(
     status = "timeout"
     driven = 0.0
     replans = 0
+    standing = dict.fromkeys(STANDING_REASONS, 0.0)
     world = World(town, density, seed, planned, params, town_map)
     try:
         if on_start is not None:
@@ -187,6 +191,8 @@ def run_episode(
             snap = world.snapshot(_view(new, progress, params, town_map))
             snap = _with_light(snap, progress, lights, params)
             monitor.check(snap, ego, new, progress.route, progress.s_m, gained)
+            if new.speed_mps < BLOCKED_SPEED_MPS:
+                standing[standing_reason(snap)] += DT_S
             ego = new
             t = world.step_count * DT_S
             goal = progress.route.polyline[-1]
@@ -221,8 +227,33 @@ def run_episode(
         agent=agent_name, status=status, steps=world.step_count, time_s=round(world.step_count * DT_S, 2),
         route_length_m=round(progress.first_length_m, 2), completed_m=round(progress.completed_m, 2),
         driven_m=round(driven, 2), outside_lane_m=round(monitor.outside_lane_m, 2), replans=replans,
-        infractions=infractions, metrics=metrics,
+        infractions=infractions, metrics=metrics, standing_s={k: round(v, 1) for k, v in standing.items()},
     )
+
+
+def standing_reason(snap: Snapshot) -> str:
+    """What the ego stands for, from the privileged state (one of STANDING_REASONS): a red or
+    amber light on its route within STANDING_LIGHT_M, else a vehicle, else a pedestrian
+    within STANDING_AHEAD_M straight ahead of its front bumper and within its width (plus the
+    other's half width), else nothing. A car or person on the turn it is about to take, or
+    one crossing beside it, counts as nothing: this says where time goes, not who was right."""
+    if snap.next_light_state in (RED, YELLOW) and snap.next_light_dist_m <= STANDING_LIGHT_M:
+        return "light"
+    if _ahead(snap.ego, snap.vehicles):
+        return "vehicle"
+    if _ahead(snap.ego, snap.pedestrians):
+        return "pedestrian"
+    return "nothing"
+
+
+def _ahead(ego: EgoView, actors: Actors) -> bool:
+    if not len(actors):
+        return False
+    c, s = math.cos(ego.yaw_rad), math.sin(ego.yaw_rad)
+    dx, dy = actors.xy[:, 0] - ego.x_m, actors.xy[:, 1] - ego.y_m
+    forward = dx * c + dy * s - ego.length_m / 2 - actors.size[:, 0] / 2
+    lateral = abs(-dx * s + dy * c) - actors.size[:, 1] / 2
+    return bool(((forward > -ego.length_m / 2) & (forward <= STANDING_AHEAD_M) & (lateral < ego.width_m / 2)).any())
 
 
 def _left_route(progress: Progress, monitor: Monitor, ego: EgoState) -> bool:
@@ -287,4 +318,4 @@ def describe(result: EpisodeResult) -> str:
     )
 
 
-__all__ = ["COMMAND_NAMES", "EpisodeResult", "describe", "run_episode"]
+__all__ = ["COMMAND_NAMES", "EpisodeResult", "describe", "run_episode", "standing_reason"]

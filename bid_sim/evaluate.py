@@ -361,16 +361,28 @@ def failure_cause(line: dict) -> str | None:
 
 
 def outcomes(lines: list[dict], densities: list[str]) -> dict:
-    """Per density and for all: episodes, their endings and their failures' first causes (counts)."""
+    """Per density and for all: episodes, their endings and their failures' first causes (counts),
+    and their seconds, in all and standing by reason (EpisodeResult.standing_s; lines written
+    before it was kept add to `time_s` only, and `standing_from` counts the episodes that have it)."""
     def count(group: list[dict]) -> dict:
         ended = dict.fromkeys(ENDINGS, 0)
         first = dict.fromkeys(FAILURE_CAUSES, 0)
+        standing = dict.fromkeys(m.STANDING_REASONS, 0.0)
+        timed = 0.0
+        with_standing = 0
         for ln in group:
             ended[ln["status"] if ln["status"] in ENDINGS else "other"] += 1
             cause = failure_cause(ln)
             if cause is not None:
                 first[cause] += 1
-        return {"episodes": len(group), "ended": ended, "failed": sum(first.values()), "first_failure": first}
+            if ln.get("standing_s"):
+                with_standing += 1
+                timed += ln["time_s"]
+                for why in m.STANDING_REASONS:
+                    standing[why] += ln["standing_s"].get(why, 0.0)
+        return {"episodes": len(group), "ended": ended, "failed": sum(first.values()), "first_failure": first,
+                "time_s": round(timed, 1), "standing_s": {k: round(v, 1) for k, v in standing.items()},
+                "standing_from": with_standing}
 
     return {"by_density": {d: count([ln for ln in lines if ln["density"] == d]) for d in densities},
             "all": count(lines)}
@@ -385,9 +397,24 @@ def outcome_tables(out: dict) -> str:
         ended.append(f"| {name} | {g['episodes']} | " + " | ".join(str(g["ended"][k]) for k in ENDINGS) + " |")
         first.append(f"| {name} | {g['failed']} | " + " | ".join(str(g["first_failure"][k]) for k in FAILURE_CAUSES)
                      + " |")
-    return ("## How the episodes ended\n\n" + "\n".join(ended) + "\n\n"
+    text = ("## How the episodes ended\n\n" + "\n".join(ended) + "\n\n"
             "## What failed them first (an episode's first collision, else how it ended)\n\n"
             + "\n".join(first) + "\n")
+    if not any(g.get("standing_from") for g in groups.values()):
+        return text
+    heads = ("at a red light", "behind a vehicle", "for a pedestrian", "with nothing near")
+    stood = ["| group | episodes | time s | standing s | " + " | ".join(heads) + " |", "|---|---|---|---|" + "---|" * 4]
+    for name, g in groups.items():
+        total = sum(g["standing_s"].values())
+        stood.append(f"| {name} | {g['standing_from']} | {g['time_s']:.0f} | {total:.0f} ({_share(total, g['time_s'])}) | "
+                     + " | ".join(f"{g['standing_s'][k]:.0f}" for k in m.STANDING_REASONS) + " |")
+    return (text + "\n## Where the time went: seconds standing, by what stood there (privileged state: a red or amber "
+            f"light within {m.STANDING_LIGHT_M:.0f} m, else a vehicle or pedestrian within {m.STANDING_AHEAD_M:.0f} m "
+            "straight ahead)\n\n" + "\n".join(stood) + "\n")
+
+
+def _share(part: float, whole: float) -> str:
+    return f"{100.0 * part / whole:.0f} %" if whole > 0 else "–"
 
 
 PAPER_KEYS_NOCRASH = ("SR", "SSR", "TL", "RC", "DS", "CV", "CP", "CL", "episodes")

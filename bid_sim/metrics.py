@@ -28,6 +28,11 @@ ROUTE_DEVIATION = "route_deviation"
 BLOCKED = "blocked"
 TIMEOUT = "timeout"
 
+# Why the ego stood (EpisodeResult.standing_s, episode.standing_reason), from the privileged state.
+STANDING_REASONS = ("light", "vehicle", "pedestrian", "nothing")
+STANDING_LIGHT_M = 10.0  # a red or amber light on the route this near the front bumper
+STANDING_AHEAD_M = 8.0  # a vehicle or pedestrian this far beyond the front bumper, in the ego's width
+
 INFRACTION_KINDS: tuple[str, ...] = (
     COLLISION_PEDESTRIAN,
     COLLISION_VEHICLE,

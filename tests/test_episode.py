@@ -3,11 +3,13 @@ import subprocess
 import sys
 
 import pytest
+from render_scenes import snapshot
 
 from bid_sim.agents import LaneFollower
 from bid_sim.cli import main
-from bid_sim.episode import EpisodeResult, run_episode
+from bid_sim.episode import EpisodeResult, run_episode, standing_reason
 from bid_sim.errors import BidError
+from bid_sim.snapshot import RED, YELLOW
 
 
 def test_scripted_episode_in_town02_crowded_runs_to_a_result(town02):
@@ -18,6 +20,33 @@ def test_scripted_episode_in_town02_crowded_runs_to_a_result(town02):
         assert key in r.metrics
     assert r.metrics["DS"] == pytest.approx(r.metrics["RC"] * r.metrics["IP"])
     json.dumps(r.to_dict())
+
+
+def test_what_a_standing_ego_stands_for(town02):
+    """A red or amber light within 10 m first, then a vehicle, then a pedestrian within 8 m
+    of the front bumper in the ego's width; beside it, behind it or farther is nothing."""
+    from dataclasses import replace
+
+    from bid_sim.town_map import load_town_map
+
+    tm = load_town_map(town02)
+    x, y = 70.0, -306.5  # heading +x: "ahead" is +x (the car is 4.6 m long, the ego's front at x + 2.3)
+    assert standing_reason(snapshot(tm, x, y, 0.0)) == "nothing"
+    car_at = lambda gap, left=0.0: (x + 2.3 + gap + 2.3, y + left, 0.0, 0)  # noqa: E731  gap: bumper to bumper
+    person_at = lambda gap, left=0.0: (x + 2.3 + gap + 0.25, y + left, 0.0, 0)  # noqa: E731
+    assert standing_reason(snapshot(tm, x, y, 0.0, vehicles=[car_at(7.5)])) == "vehicle"
+    assert standing_reason(snapshot(tm, x, y, 0.0, vehicles=[car_at(8.5)])) == "nothing"
+    assert standing_reason(snapshot(tm, x, y, 0.0, vehicles=[car_at(3.0, left=3.5)])) == "nothing"  # next lane
+    assert standing_reason(snapshot(tm, x, y, 0.0, vehicles=[car_at(3.0, left=1.5)])) == "vehicle"  # half in
+    assert standing_reason(snapshot(tm, x, y, 0.0, vehicles=[(x - 7.0, y, 0.0, 0)])) == "nothing"  # behind
+    assert standing_reason(snapshot(tm, x, y, 0.0, pedestrians=[person_at(2.0)])) == "pedestrian"
+    assert standing_reason(snapshot(tm, x, y, 0.0, vehicles=[car_at(6.0)], pedestrians=[person_at(2.0)])) == "vehicle"
+    at_light = replace(snapshot(tm, x, y, 0.0, vehicles=[car_at(2.0)]), next_light_state=RED, next_light_dist_m=9.0)
+    assert standing_reason(at_light) == "light"
+    assert standing_reason(replace(at_light, next_light_state=YELLOW)) == "light"
+    assert standing_reason(replace(at_light, next_light_dist_m=12.0)) == "vehicle"
+    # turned half left, the car dead east is no longer in its way
+    assert standing_reason(snapshot(tm, x, y, 1.2, vehicles=[car_at(3.0)])) == "nothing"
 
 
 def test_same_seed_same_episode(town02):

@@ -7,7 +7,14 @@ import shutil
 import pytest
 
 from bid_sim.cli import main
-from bid_sim.evaluate import evaluate, failure_cause, load_agent, outcomes, read_lines
+from bid_sim.evaluate import (
+    evaluate,
+    failure_cause,
+    load_agent,
+    outcome_tables,
+    outcomes,
+    read_lines,
+)
 
 RUN = {"town": "02", "densities": ("none",), "weathers": ("WetSunset",), "seeds": 1, "routes": [0, 3],
        "agent": "bid_sim.agents:LaneFollower", "progress": False}
@@ -35,13 +42,15 @@ def test_files_and_summary(serial):
     assert s["all"]["episodes"] == 2
     md = (out / "summary.md").read_text()
     assert "| SR | SSR | TL |" in md and "## By density" in md
-    assert "## What failed them first" in md
+    assert "## What failed them first" in md and "## Where the time went" in md
+    assert sum(s["outcomes"]["all"]["standing_s"].values()) <= s["outcomes"]["all"]["time_s"]
     assert s["outcomes"]["all"]["episodes"] == 2 and sum(s["outcomes"]["all"]["ended"].values()) == 2
     assert summary["eval_steps_per_s_per_core"] > 0
 
 
-def _line(density, status, sr, *contacts):
-    return {"density": density, "status": status, "metrics": {"SR": sr},
+def _line(density, status, sr, *contacts, standing=None):
+    return {"density": density, "status": status, "metrics": {"SR": sr}, "time_s": 100.0,
+            **({"standing_s": standing} if standing else {}),
             "infractions": [{"kind": "red_light", "time_s": 1.0}]
             + [{"kind": kind, "time_s": t} for kind, t in contacts]}
 
@@ -67,6 +76,22 @@ def test_what_failed_an_episode_first():
     assert crowded["ended"]["other"] == 1 and crowded["first_failure"] == {
         "vehicle": 1, "pedestrian": 0, "layout": 0, "route_deviation": 0, "timeout": 0, "blocked": 0, "other": 1}
     assert out["all"]["failed"] == 3 and out["all"]["episodes"] == 4
+    assert out["all"]["standing_from"] == 0 and "Where the time went" not in outcome_tables(out)
+
+
+def test_where_the_time_went_adds_up_the_episodes_that_kept_it():
+    lines = [_line("crowded", "completed", 100.0, standing={"light": 20.0, "vehicle": 5.0, "pedestrian": 1.0,
+                                                            "nothing": 4.0}),
+             _line("crowded", "timeout", 0.0, standing={"light": 10.0, "vehicle": 0.0, "pedestrian": 0.0,
+                                                        "nothing": 50.0}),
+             _line("crowded", "timeout", 0.0)]  # written before standing_s was kept
+    out = outcomes(lines, ["crowded"])
+    crowded = out["by_density"]["crowded"]
+    assert crowded["standing_from"] == 2 and crowded["time_s"] == 200.0
+    assert crowded["standing_s"] == {"light": 30.0, "vehicle": 5.0, "pedestrian": 1.0, "nothing": 54.0}
+    table = outcome_tables(out)
+    assert "## Where the time went" in table
+    assert "| crowded | 2 | 200 | 90 (45 %) | 30 | 5 | 1 | 54 |" in table
 
 
 def test_parallel_and_resumed_runs_match_serial(serial, tmp_path):

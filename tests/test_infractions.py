@@ -135,6 +135,9 @@ def test_blocked_after_90_s_standing(town02):
     r = run_episode(town02, LONG, "ClearNoon", "none", 0, Scripted(lambda i, o: Control(0.0, -1.0)))
     assert r.status == "blocked" and r.time_s == pytest.approx(90.0, abs=0.2)
     assert r.metrics["ABD"] == 1 and r.metrics["RC"] == 0
+    # every step it stood is counted, and with no traffic and no light near, for nothing
+    assert set(r.standing_s) == {"light", "vehicle", "pedestrian", "nothing"}
+    assert r.standing_s["nothing"] == pytest.approx(r.time_s, abs=0.2) and sum(r.standing_s.values()) <= r.time_s
 
 
 def test_timeout_when_too_slow(town02):

@@ -529,7 +529,7 @@ def test_accel_quantile_fits_that_quantile_of_the_labels_and_half_is_l1(tmp_path
     assert not (tmp_path / "x").exists()
 
 
-def test_hold_repeat_reaches_the_config_and_a_bad_one_is_one_line(tmp_path, capsys):
+def test_hold_and_start_repeat_reach_the_config_and_a_bad_one_is_one_line(tmp_path, capsys):
     import argparse
 
     from bid_model.cli import add_train_arguments
@@ -539,6 +539,11 @@ def test_hold_repeat_reaches_the_config_and_a_bad_one_is_one_line(tmp_path, caps
     add_train_arguments(parser)
     assert config_from_args(parser.parse_args(["--preset", "tiny"])).train.hold_repeat == 1
     assert config_from_args(parser.parse_args(["--preset", "tiny", "--hold-repeat", "6"])).train.hold_repeat == 6
+    assert config_from_args(parser.parse_args([])).train.start_repeat == 3  # the small preset's
+    assert config_from_args(parser.parse_args(["--start-repeat", "8"])).train.start_repeat == 8
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--start-repeat", "0", "--out", str(tmp_path / "z")]) == 2
+    assert "--start-repeat must be at least 1" in capsys.readouterr().err
+    assert not (tmp_path / "z").exists()
     assert bid(["train", "--preset", "tiny", "--synthetic", "--hold-repeat", "0", "--out", str(tmp_path / "y")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--hold-repeat must be at least 1" in err and "\n" not in err
