@@ -447,9 +447,15 @@ def compare(folders: list[str]) -> str:
         if name in cols:
             name = f"{name} #{len(cols) + 1}"
         cols.append(name)
+        outs = s.get("outcomes", {})
         for group, st in [("all", s["all"]), *s["by_density"].items()]:
             for key in ("SR", "SSR", "RC", "DS", "TL", "CV", "CP", "CL"):
                 rows.setdefault((group, key), {})[name] = m.cell(st, key)
+            out = outs.get("all") if group == "all" else outs.get("by_density", {}).get(group)
+            if out and out.get("standing_from"):  # runs from before standing_s show —
+                stood = sum(out["standing_s"].values())
+                rows.setdefault((group, "standing s"), {})[name] = f"{stood:.0f} ({_share(stood, out['time_s'])})"
+                rows.setdefault((group, "standing, nothing near s"), {})[name] = f"{out['standing_s']['nothing']:.0f}"
     lines = ["| group | metric | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
     for (group, key), vals in rows.items():
         lines.append(f"| {group} | {key} | " + " | ".join(vals.get(c, "—") for c in cols) + " |")

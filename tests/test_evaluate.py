@@ -137,6 +137,17 @@ def test_compare(serial, tmp_path, capsys):
     table = capsys.readouterr().out
     assert "| all | SR |" in table
     assert table.splitlines()[0].count("(bid_sim.agents:LaneFollower)") == 2
+    # a run from before standing_s was kept shows — in the standing rows
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    summary = json.loads((old / "summary.json").read_text())
+    for group in (summary["outcomes"]["all"], *summary["outcomes"]["by_density"].values()):
+        for key in ("standing_s", "standing_from", "time_s"):
+            del group[key]
+    (old / "summary.json").write_text(json.dumps(summary))
+    assert main(["evaluate", "--compare", str(out), str(old)]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if "| standing, nothing near s |" in line]
+    assert len(rows) == 2 and all(r.endswith(" | — |") and "| — | — |" not in r for r in rows)
     assert main(["evaluate", "--compare", str(tmp_path / "none")]) == 2
 
 
