@@ -362,8 +362,9 @@ def failure_cause(line: dict) -> str | None:
 
 def outcomes(lines: list[dict], densities: list[str]) -> dict:
     """Per density and for all: episodes, their endings and their failures' first causes (counts),
-    and their seconds, in all and standing by reason (EpisodeResult.standing_s; lines written
-    before it was kept add to `time_s` only, and `standing_from` counts the episodes that have it)."""
+    and their seconds, in all (`time_s`) and standing by reason (`standing_s`, summed from
+    EpisodeResult.standing_s): both over the `standing_from` episodes that kept it, so that lines
+    written before it was kept leave the shares right."""
     def count(group: list[dict]) -> dict:
         ended = dict.fromkeys(ENDINGS, 0)
         first = dict.fromkeys(FAILURE_CAUSES, 0)
