@@ -32,6 +32,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start-repeat", type=int, default=None, metavar="N",
                    help="train on each moving-off frame (below 2 m/s, throttle) N times, the repeats shown "
                         "standing still (recordings.balance_rows; small: 3)")
+    p.add_argument("--start-accel", type=float, default=None, metavar="A",
+                   help="a standstill's throttle of at most A is trained on as a hold (0) and not "
+                        "repeated: the expert closing up on a queue, not moving off (recordings.hold_creep; "
+                        "0, every throttle a start, by default)")
     p.add_argument("--hold-repeat", type=int, default=None, metavar="N",
                    help="keep every frame where the expert stands or brakes below 2 m/s with no red "
                         "light ahead (a yield: to pedestrians on the crossing, a car) and train on it "

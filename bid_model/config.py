@@ -140,6 +140,7 @@ class TrainConfig:
     val_fraction: float = 0.1
     stop_keep: float = 1.0  # share of standing, braking frames trained on (recordings.balance_rows)
     start_repeat: int = 1  # times each moving-off frame is trained on
+    start_accel: float = 0.0  # a standstill's throttle up to this is a hold, not a start (recordings.hold_creep)
     hard_repeat: int = 1  # times each frame of hard steering or braking while moving is trained on
     hard_brake: bool = True  # whether hard braking counts as hard (else only steering)
     hold_repeat: int = 1  # times each frame of yielding (no red light) is trained on (recordings.yield_frames)

@@ -234,8 +234,8 @@ LIGHT_STOP_M = 40.0
 
 
 def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float, start_repeat: int, hard_repeat: int = 1,
-                 hard_brake: bool = True, accel: np.ndarray | None = None, hold_repeat: int = 1
-                 ) -> tuple[np.ndarray, np.ndarray]:
+                 hard_brake: bool = True, accel: np.ndarray | None = None, hold_repeat: int = 1,
+                 start_accel: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Training rows rebalanced against the stop/go imbalance of driving data, and which of
     them to show as standing still.
 
@@ -268,15 +268,19 @@ def balance_rows(index: _Index, rows: np.ndarray, stop_keep: float, start_repeat
     pedestrians on the crossing of a turn, and the town sees it seldom (of data/new's 161k
     frames, 2.3k stand and 0.4k move slowly so, against 22k moving off). The BID of
     2026-11-25 moved off into them at +0.6 while the expert held −1 (docs/experiments.md).
-    Those frames (yield_frames) are all kept and trained on `hold_repeat` times. Returns
-    (rows, still), sorted.
+    Those frames (yield_frames) are all kept and trained on `hold_repeat` times.
+
+    With `start_accel` above 0 only a throttle above it moves off; a standstill with less is
+    standing (thinned like the rest; see hold_creep for its label). Returns (rows, still), sorted.
     """
     if not 0.0 < stop_keep <= 1.0 or start_repeat < 1 or hard_repeat < 1 or hold_repeat < 1:
         raise BidError(f"stop_keep must be in (0, 1] and start_repeat, hard_repeat, hold_repeat >= 1, got "
                        f"{stop_keep}, {start_repeat}, {hard_repeat}, {hold_repeat}")
     rows = np.asarray(rows, dtype=np.int64)
-    standing = (index.speed < STOPPED_MPS) & (index.accel <= 0.0)
-    starting = (index.speed < START_MPS) & (index.accel > 0.0)
+    if not 0.0 <= start_accel < 1.0:
+        raise BidError(f"the throttle that moves off must be in [0, 1), got {start_accel}")
+    standing = (index.speed < STOPPED_MPS) & (index.accel <= start_accel)
+    starting = (index.speed < START_MPS) & (index.accel > start_accel)
     # Standing frames that lead to a start within GO_LOOKAHEAD steps of the same episode.
     soon = np.zeros(len(index.step), dtype=bool)
     for k in range(1, GO_LOOKAHEAD + 1):
@@ -308,6 +312,22 @@ def hard_frames(index: _Index, brake: bool = True, accel: np.ndarray | None = No
     if accel is not None:
         hard |= (labels <= STOP_BRAKE) | (labels < index.accel)
     return (index.speed >= START_MPS) & hard
+
+
+def hold_creep(index: _Index, accel: np.ndarray | None, start_accel: float) -> np.ndarray:
+    """Accel labels (`accel`, or the recorded ones) in which a standstill's faint throttle, 0 to
+    `start_accel`, is 0: a hold.
+
+    Standing in a queue, the expert (IDM) closes up on the car ahead at +0.00 to +0.06, a few
+    centimetres a step. In a DAgger round, where the BID stood, that is most of its go labels
+    (the crowded round of 2026-12-03: 6,620 of 9,341 standstill frames with throttle at up to
+    +0.1, 1,987 above +0.3), and the control head fine-tuned on them learnt to creep into the
+    car ahead at walking pace (r31cpc, docs/experiments.md). A standstill's go is a real start.
+    """
+    labels = (index.accel if accel is None else accel).copy()
+    creep = (index.speed < STOPPED_MPS) & (labels > 0.0) & (labels <= start_accel)
+    labels[creep] = 0.0
+    return labels
 
 
 def yield_frames(index: _Index, accel: np.ndarray | None = None) -> np.ndarray:
@@ -437,13 +457,15 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
                     brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1,
                     hazard: bool = False, hazard_ahead_s: float = 0.0,
-                    crossing: bool = False) -> tuple[RecordingDataset, RecordingDataset, dict]:
+                    crossing: bool = False, start_accel: float = 0.0
+                    ) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
     The training rows are rebalanced with `balance_rows(stop_keep, start_repeat, hard_repeat, hard_brake,
-    hold_repeat)` and a share
+    hold_repeat, start_accel)` and a share
     `motion_drop` of them shown without motion (`motion_dropout`); their accel labels brake
-    `brake_lookahead` frames ahead (`anticipate_braking`). The validation set keeps every
+    `brake_lookahead` frames ahead (`anticipate_braking`) and, with `start_accel`, hold where a
+    standstill's throttle is at most that (`hold_creep`). The validation set keeps every
     frame and label as recorded, so its errors stay those of real driving. With
     `forecast_steps` the samples of both also hold "future_speed", the speeds that many steps
     ahead (`future_speeds`); with `hazard`, "hazard", what stands in the path
@@ -462,11 +484,12 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     train_rows = np.flatnonzero(~is_val)
     accel = anticipate_braking(index, brake_lookahead) if brake_lookahead != 1 else None
     balanced, still = balance_rows(index, train_rows, stop_keep, start_repeat, hard_repeat, hard_brake, accel,
-                                   hold_repeat)
+                                   hold_repeat, start_accel)
+    labels = hold_creep(index, accel, start_accel) if start_accel > 0.0 else accel
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
     near = _hazard_targets(index, folder / CACHE_DIR if cache else None, hazard_ahead_s, crossing) if hazard else None
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
-                             motion_dropout(len(balanced), motion_drop, seed), accel, forecast, near)
+                             motion_dropout(len(balanced), motion_drop, seed), labels, forecast, near)
     val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
@@ -484,6 +507,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                                                        if crossing else {}),
                                                     "pedestrians_ahead_s": hazard_ahead_s},
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
+        "start_accel": start_accel,
+        "train_creep_held": 0 if labels is accel else int(
+            (labels[balanced] != (index.accel if accel is None else accel)[balanced]).sum()),
         "train_hard_frames": int(hard_frames(index, hard_brake, accel)[balanced].sum()),
         "hold_repeat": hold_repeat, "train_yield_frames": int(yield_frames(index, accel)[balanced].sum()),
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,

@@ -290,7 +290,8 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       forecast_steps=ahead, hold_repeat=tc.hold_repeat,
                                                       hazard=tc.lambda_hazard > 0,
                                                       hazard_ahead_s=tc.hazard_ahead_s,
-                                                      crossing=config.model.hazard_crossing)
+                                                      crossing=config.model.hazard_crossing,
+                                                      start_accel=tc.start_accel)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
     return train_set, val_set, description
@@ -890,7 +891,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hard-brake": args.hard_brake, "--brake-lookahead": args.brake_lookahead,
              "--forecast": args.forecast, "--frame-hw": args.frame_hw, "--speed-noise": args.speed_noise,
              "--accel-quantile": args.accel_quantile, "--hold-repeat": args.hold_repeat,
-             "--start-repeat": args.start_repeat,
+             "--start-repeat": args.start_repeat, "--start-accel": args.start_accel,
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
              "--hazard-turn-weight": args.hazard_turn_weight,
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
@@ -929,6 +930,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not args.lr > 0:
             raise BidError(f"--lr must be positive, got {args.lr}")
         tc = dataclasses.replace(tc, lr=args.lr)
+    if args.start_accel is not None:
+        if not 0.0 <= args.start_accel < 1.0:
+            raise BidError(f"--start-accel is a throttle, 0 to below 1 (0: every throttle moves off); "
+                           f"got {args.start_accel}")
+        tc = dataclasses.replace(tc, start_accel=args.start_accel)
     if args.augment is not None:
         if not 0.0 <= args.augment <= 1.0:
             raise BidError(f"--augment is the share of training samples to augment, 0 to 1; got {args.augment}")

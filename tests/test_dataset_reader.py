@@ -164,6 +164,59 @@ def test_hard_steering_and_braking_frames_are_repeated_while_moving():
         balance_rows(ix, np.arange(25), 1.0, 1, hard_repeat=0)
 
 
+def test_a_standstills_faint_throttle_is_a_hold_not_a_start():
+    import numpy as np
+
+    from bid_model.recordings import balance_rows, hold_creep
+
+    # 20 frames standing in a queue, the expert closing up at +0.05; then moving off at +0.8
+    # (5 frames), and a slow roll at +0.05 (moving: not a standstill, its label kept).
+    speed = [0.0] * 20 + [0.5, 1.0, 1.5, 1.8, 1.9] + [1.0] * 5
+    accel = [0.05] * 20 + [0.8] * 5 + [0.05] * 5
+    ix = _fake_index(speed, accel, [0] * 30)
+    every_throttle = np.bincount(balance_rows(ix, np.arange(30), 0.25, 3)[0], minlength=30)
+    assert (every_throttle[:30] == 3).all()  # without: all 30 are starts, each trained on thrice
+    rows, still = balance_rows(ix, np.arange(30), 0.25, 3, start_accel=0.3)
+    counts = np.bincount(rows, minlength=30)
+    assert (counts[20:25] == 3).all() and (counts[25:] == 1).all()  # only the real start repeated
+    assert list(np.flatnonzero(counts[:10])) == [0, 4, 8] and (counts[10:20] == 1).all()  # thinned, lead-up kept
+    assert still.sum() == 10
+    labels = hold_creep(ix, None, 0.3)
+    assert list(labels[:20]) == [0.0] * 20 and np.allclose(labels[20:], accel[20:])
+    assert np.allclose(ix.accel, accel)  # the recorded labels untouched
+    braking = np.full(30, -0.2, np.float32)  # labels already lowered (anticipate_braking): kept
+    assert (hold_creep(ix, braking, 0.3) == braking).all()
+    with pytest.raises(BidError, match="moves off"):
+        balance_rows(ix, np.arange(30), 1.0, 1, start_accel=1.0)
+
+
+def test_start_accel_reaches_the_training_labels_and_the_description(recorded, monkeypatch):
+    import numpy as np
+
+    import bid_model.recordings as recordings
+
+    opened = recordings._open_index
+
+    def closing_up(folder, cache):  # the expert moves off at full throttle: make its starts faint ones
+        index, partial = opened(folder, cache)
+        index.accel[(index.speed < recordings.STOPPED_MPS) & (index.accel > 0)] = 0.05
+        return index, partial
+
+    monkeypatch.setattr(recordings, "_open_index", closing_up)
+    train, val, desc = open_recordings(recorded, (48, 144), 0.5, 0, start_repeat=2, start_accel=0.3)
+    ix = train.index
+    creep = (ix.speed < recordings.STOPPED_MPS) & (ix.accel == np.float32(0.05))
+    assert desc["start_accel"] == 0.3 and desc["train_creep_held"] == int(creep[train.rows].sum()) > 0
+    i = int(np.flatnonzero(creep[train.rows])[0])
+    assert train[i]["accel"] == 0.0 and ix.accel[train.rows[i]] == np.float32(0.05)  # recorded untouched
+    plain, _, plain_desc = open_recordings(recorded, (48, 144), 0.5, 0, start_repeat=2)
+    assert plain_desc["train_creep_held"] == 0 and plain_desc["start_accel"] == 0.0
+    assert len(train) < len(plain)  # no longer repeated as starts
+    creep_val = np.flatnonzero(creep[val.rows])
+    if len(creep_val):  # validation keeps the labels as recorded
+        assert val[int(creep_val[0])]["accel"] == np.float32(0.05)
+
+
 def test_repeated_starts_are_shown_standing_still(recorded):
     train, _, desc = open_recordings(recorded, (48, 144), 0.5, 0, stop_keep=0.5, start_repeat=2)
     assert desc["train_shown_still"] == train.still.sum() > 0

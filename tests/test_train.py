@@ -544,6 +544,12 @@ def test_hold_and_start_repeat_reach_the_config_and_a_bad_one_is_one_line(tmp_pa
     assert bid(["train", "--preset", "tiny", "--synthetic", "--start-repeat", "0", "--out", str(tmp_path / "z")]) == 2
     assert "--start-repeat must be at least 1" in capsys.readouterr().err
     assert not (tmp_path / "z").exists()
+    assert config_from_args(parser.parse_args([])).train.start_accel == 0.0
+    assert config_from_args(parser.parse_args(["--start-accel", "0.3"])).train.start_accel == 0.3
+    assert bid(["train", "--preset", "tiny", "--synthetic", "--start-accel", "1", "--out", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--start-accel is a throttle" in err and "\n" not in err
+    assert not (tmp_path / "w").exists()
     assert bid(["train", "--preset", "tiny", "--synthetic", "--hold-repeat", "0", "--out", str(tmp_path / "y")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--hold-repeat must be at least 1" in err and "\n" not in err
