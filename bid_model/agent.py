@@ -17,7 +17,7 @@ import torch
 
 from bid_model.checkpoint import load_model
 from bid_model.data import command_one_hot, prepare_frame
-from bid_model.hazards import HAZARD_AHEAD_M, SEEN_NEARNESS
+from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, SEEN_NEARNESS
 from bid_sim.agents import EpisodeInfo, Observation
 from bid_sim.ego import DT_S, Control, EgoParams
 from bid_sim.errors import BidError
@@ -58,6 +58,9 @@ CRUISE_GAIN = 1.0
 # `start_cap`: standing this long makes the next metres a start, driven under the cap.
 START_STAND_S = 1.0
 START_CAP_M = 12.0  # how far a start is capped unless told (Town02: past the stop line, the crossing, the turn)
+# `move_off_braked`: a stop counts as the brakes' when they overrode a control head asking for no
+# braking (accel >= 0) within this long before the ego came to stand.
+BRAKED_STOP_S = 1.0
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
@@ -216,6 +219,13 @@ class BIDAgent:
     sc_still: for a model with SC (`--hazard-sc`), SC reads frame t alone, its change since t−1
     zeroed (model config sc_still, `bid train --sc-still`): SC fitted on the change reads a
     moving ego's path as clear (docs/experiments.md, "SC reads the ego's own motion").
+    sc_still_moving: the same, but only while the ego moves (MOVING_MPS or faster); standing, SC
+    reads both frames as trained. Read still at every step, SC sees more of a moving ego's
+    pedestrians and the standing ego waited longer in crowded traffic (docs/experiments.md).
+    move_off_braked: seconds; with move_off, the wait before moving off after a stop the brakes
+    made against the control head (they overrode an accel of 0 or more within BRAKED_STOP_S of
+    the ego coming to stand). The control head, standing, mostly stands on: a stop it did not ask
+    for then costs move_off's whole wait (docs/experiments.md).
     """
 
     uses_camera = True
@@ -225,15 +235,22 @@ class BIDAgent:
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
                  move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None,
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
-                 start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None):
+                 start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None,
+                 sc_still_moving: bool = False, move_off_braked: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
-        if sc_still:
-            if not self.config.model.hazard_sc:
+        for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
+            if value and not self.config.model.hazard_sc:
                 raise BidError(f"{checkpoint} has no SC to read frame t alone; train one with --hazard-sc, "
-                               "or drop sc_still")
+                               f"or drop {name}")
+        if sc_still and sc_still_moving:
+            raise BidError("sc_still reads SC still at every step, sc_still_moving only while moving; keep one")
+        if sc_still:
             model_config = dataclasses.replace(self.config.model, sc_still=True)
             self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)
+        # With sc_still_moving the model's config is swapped per step: SC's reading is the config's.
+        self._sc_configs = ((self.config.model, dataclasses.replace(self.config.model, sc_still=True))
+                            if sc_still_moving and not self.config.model.sc_still else None)
         if not forecast_brake >= 0:
             raise BidError(f"forecast_brake is a gain, 0 or more; got {forecast_brake}")
         if forecast_brake > 0 and not self.config.model.forecast_s:
@@ -263,6 +280,12 @@ class BIDAgent:
         if move_off_to is not None and not 0 < move_off_to < 100:
             raise BidError(f"move_off_to is a speed in m/s, more than 0; got {move_off_to}")
         self.move_off_to = START_MPS if move_off_to is None else move_off_to
+        if move_off_braked is not None and not move_off:
+            raise BidError("move_off_braked is move_off's wait after a stop the brakes made; add move_off, or drop it")
+        if move_off_braked is not None and not 0 <= move_off_braked <= move_off:
+            raise BidError(f"move_off_braked is a wait in seconds, from 0 to move_off ({move_off:g}); got {move_off_braked}")
+        self.braked_steps = round(move_off_braked / DT_S) if move_off_braked is not None else None
+        self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
             raise BidError("path_memory is read by the brakes and move-off; add hazard_brake, vehicle_brake "
@@ -295,12 +318,16 @@ class BIDAgent:
         self._inputs: tuple | None = None
         self._still_steps = 0  # consecutive steps standing with the head seeing it clear, for move_off
         self._moving_off = False
+        self._since_override = 10**9  # steps since the brakes last overrode an accel >= 0, for move_off_braked
+        self._braked_stop = False  # the ego stands where the brakes stopped it
 
     def reset(self, info: EpisodeInfo) -> None:
         self._prev = None
         self._inputs = None
         self._still_steps = 0
         self._moving_off = False
+        self._since_override = 10**9
+        self._braked_stop = False
         self._stand_steps = 0
         self._start_left_m = 0.0
         if self.memory is not None:
@@ -316,6 +343,8 @@ class BIDAgent:
         speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
+        if self._sc_configs is not None:
+            self.model.config = self._sc_configs[float(obs.speed_mps) >= MOVING_MPS]
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0 or self.crossing_brake > 0)
@@ -340,7 +369,11 @@ class BIDAgent:
                        self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0,
                        self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
             if need > 0:
+                overrode = accel >= 0
                 accel = min(accel, -need)
+            else:
+                overrode = False
+            self._since_override = 0 if overrode else self._since_override + 1
         if self.max_speed > 0 and v > self.max_speed:
             accel = min(accel, -cruise_brake(v, self.max_speed))
         if self.start_cap > 0:
@@ -350,8 +383,13 @@ class BIDAgent:
     def _move_off(self, accel: float, speed_mps: float, near: tuple[float, ...]) -> float:
         """`accel`, raised to MOVE_OFF_ACCEL while moving off (see `move_off`); the brakes apply after."""
         clear = clear_to_move_off(near)
+        if speed_mps >= STILL_MPS:
+            self._braked_stop = False
+        elif self.braked_steps is not None and self._since_override <= self._braked_stop_steps:
+            self._braked_stop = True  # came to stand (or stands on) where the brakes held it
+        wait = self.braked_steps if self._braked_stop else self.move_off_steps
         self._still_steps = self._still_steps + 1 if speed_mps < STILL_MPS and clear else 0
-        if self._still_steps >= self.move_off_steps and clear:
+        if self._still_steps >= max(wait, 1) and clear:
             self._moving_off = True
         if self._moving_off and (not clear or speed_mps >= self.move_off_to):
             self._moving_off = False

@@ -137,12 +137,14 @@ def _evaluate(args: argparse.Namespace) -> int:
               "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
               "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
               "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
-              "move_off_to": args.move_off_to}
+              "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
+              "move_off_braked": args.move_off_braked}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
-    # A hold of 0 means something (never hold), so it is kept where the other options' 0 is dropped.
-    options = {k: v for k, v in brakes.items() if v or (k == "pedestrian_hold" and v is not None)} or None
+    # A hold or a wait of 0 means something (never hold, no wait), so it is kept where the other options' 0 is dropped.
+    options = {k: v for k, v in brakes.items()
+               if v or (k in ("pedestrian_hold", "move_off_braked") and v is not None)} or None
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
                        video=args.video, progress=not args.json, max_steps=args.max_steps,
@@ -298,6 +300,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--move-off-to", type=float, default=None, metavar="MPS",
                     help="--agent bid with --move-off: the speed moving off drives the ego to before the "
                          "control head has it again (default 2) (bid_model/agent.py)")
+    ev.add_argument("--move-off-braked", type=float, default=None, metavar="S",
+                    help="--agent bid with --move-off: after a stop the brakes made against the control "
+                         "head, move off once clear for S seconds, not --move-off's (bid_model/agent.py)")
     ev.add_argument("--path-memory", type=float, default=None, metavar="S",
                     help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
                          "the path within 6 m counts for the brakes and move-off S seconds after the head "
@@ -322,6 +327,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--sc-still", action="store_true", default=None,
                     help="--agent bid with SC (--hazard-sc): SC reads frame t alone, its change since t-1 "
                          "zeroed, as a checkpoint trained with --sc-still does (bid_model/agent.py)")
+    ev.add_argument("--sc-still-moving", action="store_true", default=None,
+                    help="--agent bid with SC: as --sc-still, but only while the ego moves (0.3 m/s or "
+                         "faster); standing, SC reads both frames as trained (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

@@ -467,6 +467,34 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     assert got == pytest.approx([-1.0, -1.0] + [MOVE_OFF_ACCEL] * 3 + [-1.0], abs=1e-5)
     with pytest.raises(BidError, match="move_off_to is the speed move_off drives to"):
         BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0, move_off_to=4.0)
+    # move_off_braked: after a stop the pedestrian brake made against a control head asking to go,
+    # it moves off once clear for 0.2 s (2 steps), not move_off's 0.8 s; a stop of the head's own
+    # still waits move_off's. The control head stands (as `going`'s) unless told to go.
+    prompt = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_braked=0.2, hazard_brake=1.0)
+    patient = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, hazard_brake=1.0)
+
+    def set_bias(agents, cpc_accel, pedestrian):
+        with torch.no_grad():
+            for agent in agents:
+                agent.model.areas["CPC"].head[-1].weight.zero_()
+                agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, cpc_accel]))
+                agent.model.hazard_head[-1].weight.zero_()
+                agent.model.hazard_head[-1].bias.copy_(torch.tensor([pedestrian, 0.0, 0.0]))
+
+    for agent in (prompt, patient):
+        agent.reset(None)
+        set_bias([agent], 100.0, 0.9)  # the head says go; a pedestrian 2.5 m ahead at 3 m/s
+        assert agent.act(Observation(frame, frame, 4, 3.0, None)).accel == pytest.approx(-1.0)
+        set_bias([agent], -100.0, 0.0)  # stood; the pedestrian gone, the head stands
+    got = [prompt.act(still).accel for _ in range(3)]
+    assert got == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
+    assert [patient.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
+    prompt.reset(None)  # standing where the head itself stopped: move_off's wait
+    assert [prompt.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
+    with pytest.raises(BidError, match="add move_off"):
+        BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, move_off_braked=2.0)
+    with pytest.raises(BidError, match="from 0 to move_off"):
+        BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_braked=2.0)
     for to in (0.0, -1.0, float("nan")):
         with pytest.raises(BidError, match="move_off_to is a speed in m/s"):
             BIDAgent(tmp_path / "hz" / "last.pt", move_off=8.0, move_off_to=to)
@@ -513,3 +541,47 @@ def test_sc_still_makes_sc_read_frame_t_alone_and_leaves_the_control_head(checkp
         assert torch.equal(still.model(frame, prev, cmd, speed), plain.model(frame, prev, cmd, speed))
     with pytest.raises(BidError, match="no SC"):
         BIDAgent(checkpoint, sc_still=True)
+
+
+def test_sc_still_moving_reads_sc_still_only_while_the_ego_moves(checkpoint, tmp_path, capsys):
+    """`bid evaluate --sc-still-moving`: the shipped SC reads frame t alone while the ego moves
+    (0.3 m/s or faster) and both frames, as trained, while it stands; the control head reads
+    both frames either way. It needs SC, and is not taken with --sc-still."""
+    import numpy as np
+    import torch
+
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    rng = np.random.default_rng(3)
+    frames = [rng.integers(0, 255, (300, 900, 3), dtype=np.uint8) for _ in range(2)]
+
+    def sc_seen(agent, speed_mps):
+        """SC's output on the second of two steps at speed_mps, and the control."""
+        seen = []
+        forward_hazard = agent.model.forward_hazard
+
+        def spy(features, *a, **kw):
+            seen.append(features["SC"].clone())
+            return forward_hazard(features, *a, **kw)
+
+        agent.model.forward_hazard = spy
+        agent.reset(None)
+        controls = [agent.act(Observation(f, f, 4, speed_mps, None)) for f in frames]
+        return seen[-1], controls[-1]
+
+    plain = BIDAgent(shipped, hazard_brake=1.0)
+    still = BIDAgent(shipped, hazard_brake=1.0, sc_still=True)
+    moving = BIDAgent(shipped, hazard_brake=1.0, sc_still_moving=True)
+    for speed, like in ((5.0, still), (0.3, still), (0.29, plain), (0.0, plain)):
+        got, control = sc_seen(moving, speed)
+        want, want_control = sc_seen(like, speed)
+        assert torch.equal(got, want) and control == want_control, speed
+    assert not torch.equal(sc_seen(still, 5.0)[0], sc_seen(plain, 5.0)[0])  # the two readings differ
+    assert not moving.config.model.sc_still  # the checkpoint's own reading, as loaded
+    with pytest.raises(BidError, match="no SC"):
+        BIDAgent(checkpoint, sc_still_moving=True)
+    with pytest.raises(BidError, match="keep one"):
+        BIDAgent(shipped, sc_still=True, sc_still_moving=True)
+    assert main(["evaluate", "--agent", "expert", "--sc-still-moving", "--out", str(tmp_path / "x")]) == 2
+    assert "--sc-still-moving is an option of --agent bid" in capsys.readouterr().err
