@@ -38,6 +38,11 @@ READ_FIELDS = frozenset({"sc_still"})
 # starts braking for a 90° corner about 3 s before it.
 FORECAST_S = (1.0, 2.0, 3.0)
 
+# The columns of the hazard targets (bid_model.hazards; red_light: hazard_light; crossing:
+# hazard_crossing), here so that the network imports without the simulator.
+KINDS = ("pedestrian", "vehicle", "red_light", "crossing")
+PATH_KINDS = KINDS[:2]  # those found in the path (hazards.path_hazards)
+
 PRESETS = ("paper", "small", "tiny")
 
 # The paper halves the learning rate at these epochs of its 100.
@@ -159,7 +164,7 @@ class TrainConfig:
     hazard_moving_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0
-    accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (train.l1_loss)
+    accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (losses.l1_loss)
     speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
     train_only: tuple[str, ...] = ()  # the parts trained (BID.parts), the rest frozen; () all (train.freeze_all_but)
     seed: int = 0

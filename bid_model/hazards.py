@@ -43,6 +43,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Polygon
 
+from bid_model.config import PATH_KINDS
 from bid_sim.errors import BidError
 from bid_sim.recording import read_facts, read_snapshots
 from bid_sim.snapshot import RED, YELLOW, Actors, Snapshot
@@ -52,9 +53,6 @@ log = logging.getLogger(__name__)
 HAZARD_AHEAD_M = 25.0  # how far along the path to look: about 2 s at Town01's 11 m/s, and a stop
 CORRIDOR_MARGIN_M = 0.4  # beyond the ego's half width: a pedestrian on the kerb is not in the path
 PATH_STEP_M = 0.5  # spacing of the path's sample points
-# The columns of the targets (red_light: model.hazard_light; crossing: model.hazard_crossing).
-KINDS = ("pedestrian", "vehicle", "red_light", "crossing")
-PATH_KINDS = KINDS[:2]  # those found in the path (path_hazards)
 # The hazard head's nearness (1 - distance / HAZARD_AHEAD_M) from which an actor counts as seen
 # in the path, within 20 of the 25 m: where `bid evaluate --hazard-brake` / `--vehicle-brake` start.
 SEEN_NEARNESS = 0.2

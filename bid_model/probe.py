@@ -21,8 +21,9 @@ import numpy as np
 import torch
 
 from bid_model.checkpoint import load_model
+from bid_model.config import KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import HAZARD_AHEAD_M, KINDS, MOVING_MPS, NEAR_M
+from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
 from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection
 from bid_sim.errors import BidError

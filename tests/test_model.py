@@ -1,6 +1,9 @@
 """The BID network on the tiny preset: shapes, recurrence, gradients, lesions, bad input."""
 
 import dataclasses
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -131,6 +134,21 @@ def test_gradients_reach_every_area():
         assert any(float(p.grad.abs().sum()) > 0 for p in area.parameters()), name
 
 
+def test_mean_activations_average_the_first_batches_then_follow_training():
+    model = tiny_model().train()
+    batches = [inputs(model, seed=s) for s in range(3)]
+    it_means = []
+    for x in batches:
+        it_means.append(model.forward_features(*x)["IT"].detach().mean(0))
+    # The cumulative average of the first batches (weights 1, 1/2, 1/3 > lesion_momentum).
+    assert torch.allclose(model.mean_IT, torch.stack(it_means).mean(0), atol=1e-6)
+    model.mean_batches.fill_(1000)  # later: an exponential average with the configured weight
+    before = model.mean_IT.clone()
+    now = model.forward_features(*batches[0])["IT"].detach().mean(0)
+    m = model.config.lesion_momentum
+    assert torch.allclose(model.mean_IT, before * (1 - m) + now * m, atol=1e-6)
+
+
 def test_lesions_change_outputs_and_are_restored():
     model = tiny_model()
     x = inputs(model)
@@ -216,3 +234,60 @@ def test_run_config_round_trips_through_json():
 
     run = RunConfig(with_variant(tiny().model, "both"), tiny().train.with_epochs(7))
     assert RunConfig.from_dict(json.loads(json.dumps(run.to_dict()))) == run
+
+
+def test_the_network_trains_and_is_timed_without_the_simulator_installed():
+    # A GPU node that trains or times the network (benchmarks/bench_model.py --gpu-profile) has
+    # torch but neither SUMO nor the recordings' libraries: the network, its loss and the
+    # benchmark must import without them. Each is made unimportable in a child process.
+    root = Path(__file__).resolve().parents[1]
+    code = f"""
+import sys
+for name in ("libsumo", "traci", "sumolib", "mcap", "mcap_protobuf", "shapely", "zstandard", "lz4"):
+    sys.modules[name] = None
+sys.path.insert(0, {str(root / "benchmarks")!r})
+import torch
+import bench_model
+step = bench_model.TrainStep("tiny", 2, torch.device("cpu"))
+print(len(step.seconds(1)), bench_model.kernel_family("sm90_xmma_wgrad_implicit_gemm"))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          cwd=root)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["1", "conv", "weight", "grad"]
+
+
+def test_compiled_areas_keep_one_static_graph_per_batch_size_and_mode():
+    # `bid train --compile` (CUDA): every area through torch.compile with static shapes. A run
+    # meets the full and the last batch, training and evaluating; V2, V4 and IT share one code
+    # object, so without a raised limit dynamo gives up on IT's graphs and runs it eagerly. The
+    # eager backend checks dynamo's graphs and guards without a GPU or a C compiler.
+    code = """
+import torch
+from unittest import mock
+from torch._dynamo.utils import counters
+from bid_model.config import tiny
+from bid_model.data import command_one_hot
+from bid_model.model import BID, compile_each_area
+torch.manual_seed(0)
+model = BID(tiny().model)
+compile_module = torch.nn.Module.compile
+with mock.patch.object(torch.nn.Module, "compile", lambda m, **kw: compile_module(m, backend="eager", **kw)):
+    compile_each_area(model)
+h, w = model.config.frame_hw
+for mode in ("train", "eval"):
+    getattr(model, mode)()
+    for b in (4, 3, 4, 3):
+        frames = torch.randint(0, 256, (b, 3, h, w), dtype=torch.uint8)
+        out = model(frames, frames, command_one_hot(torch.ones(b, dtype=torch.long)), torch.rand(b))
+        if mode == "train":
+            out.sum().backward()
+print(counters["stats"]["unique_graphs"], sorted(counters["unimplemented"]))
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert done.returncode == 0, done.stderr[-2000:]
+    graphs, gave_up = done.stdout.split(" ", 1)
+    assert gave_up.strip() == "[]", gave_up  # no "recompile limit exceeded"
+    # Each area once per (batch size, mode) at most: 4 combinations of the tiny model's areas.
+    assert 0 < int(graphs) <= 4 * len(tiny_model().areas)
