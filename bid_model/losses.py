@@ -1,6 +1,7 @@
 """The driving loss of `bid train`, apart from the trainer so that it imports without the
-simulator (a GPU node that trains or times the network needs neither SUMO nor the recordings'
-libraries: benchmarks/bench_model.py --gpu-profile)."""
+simulator: a GPU node that times training steps of the network needs neither SUMO nor the
+recordings' libraries (benchmarks/bench_model.py --gpu-profile; `bid train` itself still
+imports them)."""
 
 from __future__ import annotations
 
