@@ -237,7 +237,7 @@ def test_run_config_round_trips_through_json():
 
 
 def test_the_network_trains_and_is_timed_without_the_simulator_installed():
-    # A GPU node that trains or times the network (benchmarks/bench_model.py --gpu-profile) has
+    # A GPU node that times training steps (benchmarks/bench_model.py --gpu-profile) has
     # torch but neither SUMO nor the recordings' libraries: the network, its loss and the
     # benchmark must import without them. Each is made unimportable in a child process.
     root = Path(__file__).resolve().parents[1]
