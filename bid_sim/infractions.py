@@ -106,7 +106,9 @@ class Monitor:
                                     actors.size[i, 0], actors.size[i, 1])
                 if boxes_overlap(corners, other):
                     side = contact_side(ego, self.params, actors.xy[i, 0], actors.xy[i, 1])
-                    self._collision(kind, t, ego, actors.ids[i], f"{side}, ego {ego.speed_mps:.1f} m/s")
+                    x, y, v = actors.xy[i, 0], actors.xy[i, 1], actors.speed_mps[i]
+                    self._collision(kind, t, ego, actors.ids[i],
+                                    f"{side}, ego {ego.speed_mps:.1f} m/s; it at ({x:.1f}, {y:.1f}), {v:.1f} m/s")
 
     def _check_layout(self, ego: EgoState, corners: np.ndarray, t: float) -> None:
         b = self.town_map.building_hit(corners)

@@ -52,6 +52,9 @@ def test_vehicle_collision_counts_once_per_actor(town02):
     r = run_episode(town02, LONG, "ClearNoon", "none", 0, LaneFollower(6.0), on_start=park_ahead, max_steps=250)
     hits = [i for i in r.infractions if i.kind == m.COLLISION_VEHICLE]
     assert len(hits) == 1 and hits[0].actor == "parked" and hits[0].detail.startswith("front, ego ")
+    # Where the other stood and how fast it went: the parked car, 30 m on along the lane.
+    x, y = (float(v) for v in hits[0].detail.split("it at (")[1].split(")")[0].split(", "))
+    assert math.hypot(x - hits[0].x_m, y - hits[0].y_m) < 5.0 and hits[0].detail.endswith("), 0.0 m/s")
     assert r.metrics["CV"] == 1 and r.metrics["SR"] == 0 and r.metrics["IP"] == pytest.approx(0.6)
 
 
