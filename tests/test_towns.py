@@ -124,9 +124,10 @@ def test_workers_that_build_a_missing_net_at_once_all_get_it(tmp_path, monkeypat
 
 
 def _waiting_places_in_turning_paths(net_file) -> list[tuple[str, float, float]]:
-    """Places across each crossing's two ends where people wait for the light (SUMO's
-    stripes, 0.64 m apart) that lie outside every walking area and sidewalk and within the
-    ego's half width plus a person's half size of an internal car lane's centre line."""
+    """Places where people wait for the light (six across each end of each crossing, from
+    half a SUMO stripe, 0.32 m, in from either side) that lie outside every walking area and
+    sidewalk and within the ego's half width plus a person's half size of an internal car
+    lane's centre line."""
     import numpy as np
     import shapely
     import sumolib
