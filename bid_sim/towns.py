@@ -53,8 +53,9 @@ NETCONVERT_VERSION_TAG = "bid-sim-netconvert-v2"
 # data were made with. At 4 m the outer metre of each crossing's end lies in the carriageway
 # beyond the walking area's rounded corner, and people waiting there for the light stand
 # where a right-turning car's body passes (Town01 96, Town02 59, Town05 230 waiting places);
-# at 2 m (`crossing_width_m = 2` in town.toml) none does. Not the default: on 2 m crossings
-# the shipped BID, trained on 4 m ones, drove no better (docs/experiments.md, 2026-12-04).
+# at 2 m (`crossing_width_m = 2` in town.toml) none does. Not the default: the shipped BID,
+# trained on 4 m zebras, drives 2 m towns worse (without traffic 35 red lights against 10;
+# docs/experiments.md, 2026-12-04) until it is trained on them.
 CROSSING_WIDTH_M = 4.0
 
 # Used when a user's town folder has no town.toml.
