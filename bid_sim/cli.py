@@ -87,7 +87,7 @@ def _record(args: argparse.Namespace) -> int:
     from bid_sim.weather import parse_weathers
 
     densities = tuple(d.strip() for d in args.densities.split(",") if d.strip())
-    out = args.out or f"data/town{args.town}" if args.town.isdigit() else f"data/{Path(args.town).name}"
+    out = args.out or (f"data/town{args.town}" if args.town.isdigit() else f"data/{Path(args.town).name}")
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
                      progress=not args.json, perturb=args.perturb, ray_address=args.ray,

@@ -23,7 +23,7 @@ from bid_sim.agents import make_agent
 from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
 from bid_sim.perturb import Dagger, Perturbed
-from bid_sim.recording import EpisodeWriter, partial_path
+from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
 from bid_sim.towns import resolve_town
 from bid_sim.weather import check_weather
@@ -74,6 +74,30 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
                         seed * 100_000 + i, agent, max_steps, perturb, dagger) for i in range(episodes)]
 
 
+def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
+    """The facts of `spec` that a recording of it carries (record_episode) and that differ between
+    plans: which route, which seed, who drove and how."""
+    return {"route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->{spec.route.goal_edge}@{spec.route.goal_pos_m}",
+            "seed": str(spec.seed), "agent": spec.agent, "perturb": str(spec.perturb),
+            "dagger": Path(spec.dagger).name if spec.dagger else ""}
+
+
+def check_same_plan(spec: EpisodeSpec, path: Path) -> None:
+    """An episode file already in the --out folder is kept (a rerun finishes an interrupted
+    recording) only if it is the episode `spec` plans: another --seed, --perturb, --dagger,
+    --agent or town would otherwise mix two recordings under one folder unnoticed."""
+    theirs = read_facts(path)
+    theirs = {**theirs, "dagger": theirs.get("dagger", "")}
+    differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
+              for k, v in plan_facts(spec).items() if theirs.get(k) != v]
+    town = resolve_town(spec.town).name
+    if theirs.get("town") != town:
+        differ.insert(0, f"town {theirs.get('town')!r} here, {town!r} planned")
+    if differ:
+        raise BidError(f"{path} belongs to another recording ({'; '.join(differ)}): record into another "
+                       f"--out folder, or give the options that recording was made with to finish it")
+
+
 def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     """Drives and records one episode; returns its summary. Runs in a worker process."""
     import cv2
@@ -87,8 +111,7 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     town = resolve_town(spec.town)
     town_map = load_town_map(town)
     renderer = Renderer(town_map, weather=spec.weather, seed=spec.seed)
-    facts = {"town": town.name, "town_source": spec.town, "route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->"
-             f"{spec.route.goal_edge}@{spec.route.goal_pos_m}", "episode": str(spec.index),
+    facts = {"town": town.name, "town_source": spec.town, "route": plan_facts(spec)["route"], "episode": str(spec.index),
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
              "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}
@@ -153,6 +176,9 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         load_agent("bid", dagger)  # a damaged or foreign checkpoint fails here, once
         dagger = str(Path(dagger).resolve())
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends)
+    for s in specs:
+        if (out / f"{s.name}.mcap").exists():
+            check_same_plan(s, out / f"{s.name}.mcap")
     todo = [s for s in specs if not (out / f"{s.name}.mcap").exists()]
     for s in todo:
         partial_path(out / f"{s.name}.mcap").unlink(missing_ok=True)  # restarted from scratch

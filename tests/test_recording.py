@@ -169,6 +169,36 @@ def test_record_bends_takes_routes_round_a_corner(tmp_path):
         assert any(s <= 250.0 for s, _ in route.road_bends())
 
 
+def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_path):
+    """Rerunning finishes an interrupted recording; the same folder with another --seed,
+    --perturb or --agent is refused before anything is written, the files left as they were."""
+    for f in files(recorded):
+        shutil.copy(f, tmp_path / f.name)
+    before = {f.name: f.read_bytes() for f in files(tmp_path)}
+    same = {**RECORD_PLAN, "out": tmp_path}
+    assert record(**same)["skipped"] == 2
+    for change, named in (({"seed": 4}, "seed"), ({"perturb": 0.2}, "perturb"), ({"agent": "expert"}, "agent")):
+        with pytest.raises(BidError, match=f"belongs to another recording.*{named} .* planned.*another --out"):
+            record(**{**same, **change})
+    assert {f.name: f.read_bytes() for f in files(tmp_path)} == before
+
+
+def test_record_from_a_town_folder_writes_into_out(tmp_path, monkeypatch):
+    """--out is where a user town's episodes go, as for a numbered town (it was once ignored
+    for folders, which all went to data/<folder name>)."""
+    from bid_sim import towns
+
+    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+    mine = tmp_path / "mytown"
+    mine.mkdir()
+    shutil.copy(towns.resolve_town("02").net_file, mine / "city.net.xml")
+    out = tmp_path / "o"
+    monkeypatch.chdir(tmp_path)
+    assert main(["record", "--town", str(mine), "--episodes", "1", "--densities", "none", "--weathers",
+                 "ClearNoon", "--max-steps", "3", "--workers", "1", "--out", str(out), "--json"]) == 0
+    assert len(files(out)) == 1 and not (tmp_path / "data").exists()
+
+
 def test_kill_mid_episode_keeps_finished_ones(recorded, tmp_path):
     """kill -9 while recording: finished episodes stay intact, the partial is salvageable,
     and a re-run completes the rest."""
