@@ -39,10 +39,12 @@ from bid_sim.agents import AGENTS, make_agent
 from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
 from bid_sim.routes import load_routes
-from bid_sim.towns import resolve_town
+from bid_sim.towns import CROSSING_WIDTH_M, net_tag, resolve_town
 from bid_sim.weather import check_weather
 
 PRIVILEGED = {"expert", "lanefollow"}
+# config.json keys that results written by earlier versions lack; such results still resume.
+ADDED_KEYS = ("town_net", "crossing_width_m")
 
 
 @dataclass(frozen=True)
@@ -232,7 +234,9 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     if checkpoint is not None and not Path(checkpoint).exists():
         raise BidError(f"checkpoint {checkpoint} does not exist; give a run's best.pt or last.pt")
     load_agent(agent, checkpoint, options)  # fail here, once, before any worker starts
-    config = {"town": resolve_town(town).name, "densities": list(densities), "weathers": list(weathers),
+    t = resolve_town(town)
+    config = {"town": t.name, "town_net": net_tag(t), "crossing_width_m": t.crossing_width_m,
+              "densities": list(densities), "weathers": list(weathers),
               "seeds": seeds, "agent": agent, "checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
               "checkpoint_sha256": file_digest(checkpoint) if checkpoint else None,
               "routes": routes, "options": options or None, "max_steps": max_steps, "software": f"bid-sim {__version__}"}
@@ -243,7 +247,8 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     cfg_path = out / "config.json"
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
-        diff = [k for k in config if k != "software" and old.get(k) != config[k]]
+        diff = [k for k in config if k != "software" and old.get(k) != config[k]
+                and not (k in ADDED_KEYS and k not in old)]  # results written before a key was added
         if diff == ["seeds"] and isinstance(old.get("seeds"), int) and config["seeds"] > old["seeds"]:
             # More seeds of the same run: an episode's key names its seed, so those done stay valid.
             cfg_path.write_text(json.dumps(config, indent=1))
@@ -426,7 +431,9 @@ def summary_markdown(summary: dict) -> str:
     cfg = summary["config"]
     keys = PAPER_KEYS_LEADERBOARD if cfg["town"] == "Town05" else PAPER_KEYS_NOCRASH
     head = "APA = RC, ADG = DS (the paper's Town05 names)\n\n" if cfg["town"] == "Town05" else ""
-    parts = [f"# {cfg['town']} · agent {cfg['agent']} · weathers {', '.join(cfg['weathers'])} · "
+    width = cfg.get("crossing_width_m", CROSSING_WIDTH_M)
+    crossings = f" · {width:g} m crossings" if width != CROSSING_WIDTH_M else ""
+    parts = [f"# {cfg['town']}{crossings} · agent {cfg['agent']} · weathers {', '.join(cfg['weathers'])} · "
              f"{cfg['seeds']} seed(s)\n", head,
              "## By density\n", m.format_table(summary["by_density"], keys), "\n",
              "## By weather\n", m.format_table(summary["by_weather"], keys), "\n",

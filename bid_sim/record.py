@@ -25,7 +25,7 @@ from bid_sim.parallel import run_parallel
 from bid_sim.perturb import Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
-from bid_sim.towns import resolve_town
+from bid_sim.towns import net_tag, resolve_town
 from bid_sim.weather import check_weather
 
 log = logging.getLogger(__name__)
@@ -90,9 +90,12 @@ def check_same_plan(spec: EpisodeSpec, path: Path) -> None:
     theirs = {**theirs, "dagger": theirs.get("dagger", "")}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
-    town = resolve_town(spec.town).name
-    if theirs.get("town") != town:
-        differ.insert(0, f"town {theirs.get('town')!r} here, {town!r} planned")
+    town = resolve_town(spec.town)
+    if theirs.get("town") != town.name:
+        differ.insert(0, f"town {theirs.get('town')!r} here, {town.name!r} planned")
+    elif theirs.get("town_net", net_tag(town)) != net_tag(town):  # files recorded before it was written lack it
+        differ.insert(0, f"town {town.name} with crossings {theirs.get('crossing_width_m', '?')} m here, "
+                         f"{town.crossing_width_m:g} m planned, or another net")
     if differ:
         raise BidError(f"{path} belongs to another recording ({'; '.join(differ)}): record into another "
                        f"--out folder, or give the options that recording was made with to finish it")
@@ -111,7 +114,8 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     town = resolve_town(spec.town)
     town_map = load_town_map(town)
     renderer = Renderer(town_map, weather=spec.weather, seed=spec.seed)
-    facts = {"town": town.name, "town_source": spec.town, "route": plan_facts(spec)["route"], "episode": str(spec.index),
+    facts = {"town": town.name, "town_source": spec.town, "town_net": net_tag(town),
+             "crossing_width_m": f"{town.crossing_width_m:g}", "route": plan_facts(spec)["route"], "episode": str(spec.index),
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
              "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}

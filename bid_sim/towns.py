@@ -144,6 +144,21 @@ def netconvert_binary() -> str:
     return str(Path(sumo.SUMO_HOME) / "bin" / "netconvert")
 
 
+def net_tag(town: Town) -> str:
+    """What the town's net is made of, as 16 hex digits: its plain XML, the crossings' width and
+    netconvert's options (or a user's ready .net.xml). Two towns of one name built otherwise (a
+    town.toml with another crossing_width_m) differ here; results and recordings carry it."""
+    sources = _sources(town.folder)
+    if not sources:
+        return hashlib.sha256(sorted(town.folder.glob("*.net.xml"))[0].read_bytes()).hexdigest()[:16]
+    digest = hashlib.sha256(NETCONVERT_VERSION_TAG.encode())
+    digest.update(f"crossing {town.crossing_width_m:g}".encode())
+    for p in sources:
+        digest.update(p.name.encode())
+        digest.update(p.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def build_net(town: Town) -> Path:
     """Builds build/<town>/<town>.net.xml from the plain XML when missing or stale.
 
@@ -153,12 +168,7 @@ def build_net(town: Town) -> Path:
     if not sources:
         nets = sorted(town.folder.glob("*.net.xml"))
         return nets[0]
-    digest = hashlib.sha256(NETCONVERT_VERSION_TAG.encode())
-    digest.update(f"crossing {town.crossing_width_m:g}".encode())
-    for p in sources:
-        digest.update(p.name.encode())
-        digest.update(p.read_bytes())
-    tag = digest.hexdigest()[:16]
+    tag = net_tag(town)
     out_dir = BUILD / town.folder.name
     net = out_dir / f"{town.folder.name}.net.xml"
     stamp = out_dir / "net.sha"

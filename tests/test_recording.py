@@ -169,7 +169,7 @@ def test_record_bends_takes_routes_round_a_corner(tmp_path):
         assert any(s <= 250.0 for s, _ in route.road_bends())
 
 
-def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_path):
+def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_path, monkeypatch):
     """Rerunning finishes an interrupted recording; the same folder with another --seed,
     --perturb or --agent is refused before anything is written, the files left as they were."""
     for f in files(recorded):
@@ -181,6 +181,17 @@ def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_pat
         with pytest.raises(BidError, match=f"belongs to another recording.*{named} .* planned.*another --out"):
             record(**{**same, **change})
     assert {f.name: f.read_bytes() for f in files(tmp_path)} == before
+    from bid_sim import towns
+    from bid_sim.recording import read_facts
+
+    facts = read_facts(files(tmp_path)[0])
+    assert facts["town_net"] == towns.net_tag(towns.resolve_town("02")) and facts["crossing_width_m"] == "4"
+    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+    narrow = tmp_path / "narrow"  # the same town with 2 m crossings: another net, refused
+    shutil.copytree(towns.resolve_town("02").folder, narrow)
+    (narrow / "town.toml").write_text("crossing_width_m = 2\n" + (narrow / "town.toml").read_text())
+    with pytest.raises(BidError, match="crossings 4 m here, 2 m planned"):
+        record(**{**same, "town": str(narrow)})
 
 
 def test_record_from_a_town_folder_writes_into_out(tmp_path, monkeypatch):
