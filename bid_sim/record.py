@@ -25,7 +25,7 @@ from bid_sim.parallel import run_parallel
 from bid_sim.perturb import Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
-from bid_sim.towns import net_tag, resolve_town
+from bid_sim.towns import Town, net_tag, resolve_town
 from bid_sim.weather import check_weather
 
 log = logging.getLogger(__name__)
@@ -82,18 +82,18 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
             "dagger": Path(spec.dagger).name if spec.dagger else ""}
 
 
-def check_same_plan(spec: EpisodeSpec, path: Path) -> None:
+def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
     recording) only if it is the episode `spec` plans: another --seed, --perturb, --dagger,
-    --agent or town would otherwise mix two recordings under one folder unnoticed."""
+    --agent or town would otherwise mix two recordings under one folder unnoticed. `town`, `tag`:
+    the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
     theirs = {**theirs, "dagger": theirs.get("dagger", "")}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
-    town = resolve_town(spec.town)
     if theirs.get("town") != town.name:
         differ.insert(0, f"town {theirs.get('town')!r} here, {town.name!r} planned")
-    elif theirs.get("town_net", net_tag(town)) != net_tag(town):  # files recorded before it was written lack it
+    elif theirs.get("town_net", tag) != tag:  # files recorded before it was written lack it
         differ.insert(0, f"town {town.name} with crossings {theirs.get('crossing_width_m', '?')} m here, "
                          f"{town.crossing_width_m:g} m planned, or another net")
     if differ:
@@ -180,9 +180,11 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         load_agent("bid", dagger)  # a damaged or foreign checkpoint fails here, once
         dagger = str(Path(dagger).resolve())
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends)
+    plan_town = resolve_town(town)
+    plan_tag = net_tag(plan_town)
     for s in specs:
         if (out / f"{s.name}.mcap").exists():
-            check_same_plan(s, out / f"{s.name}.mcap")
+            check_same_plan(s, out / f"{s.name}.mcap", plan_town, plan_tag)
     todo = [s for s in specs if not (out / f"{s.name}.mcap").exists()]
     for s in todo:
         partial_path(out / f"{s.name}.mcap").unlink(missing_ok=True)  # restarted from scratch
