@@ -138,7 +138,7 @@ def _evaluate(args: argparse.Namespace) -> int:
               "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
               "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
               "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
-              "move_off_braked": args.move_off_braked}
+              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
@@ -315,6 +315,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-speed", type=float, default=None, metavar="MPS",
                     help="--agent bid: brake whenever the ego is faster than MPS m/s, by 1 share of full "
                          "braking per m/s over (0: no cap) (bid_model/agent.py)")
+    ev.add_argument("--turn-speed", type=float, default=None, metavar="MPS",
+                    help="--agent bid: while the command is LEFT or RIGHT (from 20 m before the junction), "
+                         "brake whenever the ego is faster than MPS m/s, as --max-speed does (bid_model/agent.py)")
     ev.add_argument("--crossing-brake", type=float, default=None, metavar="GAIN",
                     help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
                          "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "

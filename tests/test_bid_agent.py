@@ -181,6 +181,31 @@ def test_max_speed_brakes_an_ego_faster_than_the_cap(checkpoint, tmp_path, capsy
     assert "--max-speed is an option of --agent bid" in capsys.readouterr().err
 
 
+def test_turn_speed_brakes_only_under_a_turn_command(checkpoint, tmp_path, capsys):
+    """With turn_speed the agent brakes as max_speed does while the command is LEFT or RIGHT; on
+    STRAIGHT, LANEFOLLOW and lane changes, or at or below the cap, the control head drives."""
+    import numpy as np
+
+    from bid_sim.agents import Observation
+    from bid_sim.routes import CHANGELANELEFT, LANEFOLLOW, LEFT, RIGHT, STRAIGHT
+
+    frame = np.random.default_rng(3).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    plain, capped = BIDAgent(checkpoint), BIDAgent(checkpoint, turn_speed=4.0)
+    for command in (LEFT, RIGHT, STRAIGHT, LANEFOLLOW, CHANGELANELEFT):
+        for speed, brake in ((3.0, 0.0), (4.0, 0.0), (4.5, 0.5), (7.0, 1.0)):
+            plain.reset(None)
+            capped.reset(None)
+            head = plain.act(Observation(frame, frame, command, speed, None))
+            got = capped.act(Observation(frame, frame, command, speed, None))
+            assert got.steer == head.steer
+            want = min(head.accel, -brake) if brake and command in (LEFT, RIGHT) else head.accel
+            assert got.accel == pytest.approx(want, abs=1e-6), (command, speed)
+    with pytest.raises(BidError, match="turn_speed is a speed in m/s"):
+        BIDAgent(checkpoint, turn_speed=-2.0)
+    assert main(["evaluate", "--agent", "expert", "--turn-speed", "4", "--out", str(tmp_path / "x")]) == 2
+    assert "--turn-speed is an option of --agent bid" in capsys.readouterr().err
+
+
 def test_start_cap_holds_the_metres_after_a_stand_under_the_cap(checkpoint, tmp_path, capsys):
     """With start_cap, standing 1 s makes the next start_cap_m metres a start: faster than the
     cap there, the agent brakes as max_speed does; past them, or never having stood, it does
