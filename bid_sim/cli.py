@@ -317,7 +317,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "braking per m/s over (0: no cap) (bid_model/agent.py)")
     ev.add_argument("--turn-speed", type=float, default=None, metavar="MPS",
                     help="--agent bid: while the command is LEFT or RIGHT (from 20 m before the junction), "
-                         "brake whenever the ego is faster than MPS m/s, as --max-speed does (bid_model/agent.py)")
+                         "brake whenever the ego is faster than MPS m/s, as --max-speed does (0: no cap) (bid_model/agent.py)")
     ev.add_argument("--crossing-brake", type=float, default=None, metavar="GAIN",
                     help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
                          "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "
