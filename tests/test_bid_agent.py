@@ -390,7 +390,7 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
                             "max_speed"}
     shipped = root / "checkpoints" / "bid_small.pt"
     agent = BIDAgent(shipped, **options)
-    assert agent.vehicle_brake == agent.light_brake == agent.hazard_brake == 1.0 and agent.move_off_steps == 80
+    assert agent.light_brake == agent.hazard_brake == 1.0 and agent.vehicle_brake == 2.0 and agent.move_off_steps == 80
     assert agent.pedestrian_hold_m == 6.0 and agent.max_speed == 9.0
     assert agent.config.model.hazard_sc
     plain = BIDAgent(shipped)
