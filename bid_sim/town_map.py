@@ -492,8 +492,13 @@ def _collect_lanes(net: sumolib.net.Net) -> tuple[list[LaneGeom], list[Ring]]:
     return lanes, asphalt
 
 
-def _collect_pedestrian(net: sumolib.net.Net) -> tuple[list[Ring], list[Ring], list[Ring]]:
-    """Sidewalk polygons (lanes + walking areas), crossing polygons and zebra bars."""
+def _collect_pedestrian(net: sumolib.net.Net, zebra_width_m: float | None = None
+                        ) -> tuple[list[Ring], list[Ring], list[Ring]]:
+    """Sidewalk polygons (lanes + walking areas), crossing polygons and zebra bars.
+
+    With `zebra_width_m` the bars are painted that wide, grown or shrunk on the junction's side:
+    netconvert keeps a crossing's edge at the street's lane end and moves the other with
+    `--default.crossing-width`, so a 2 m crossing painted 4 m wide looks as the 4 m one does."""
     sidewalks, crossings, stripes = [], [], []
     for edge in sorted(net.getEdges(withInternal=True), key=lambda e: e.getID()):
         function = edge.getFunction()
@@ -506,7 +511,11 @@ def _collect_pedestrian(net: sumolib.net.Net) -> tuple[list[Ring], list[Ring], l
             elif function == "crossing":
                 if len(shape) >= 2:
                     crossings += _rings(_strip(shape, width))
-                    stripes += _zebra(shape[0], shape[-1], width)
+                    a, b = shape[0], shape[-1]
+                    if zebra_width_m is not None and zebra_width_m != width:
+                        grow = _toward_junction(a, b, edge.getFromNode().getCoord()) * (zebra_width_m - width) / 2
+                        a, b, width = a + grow, b + grow, zebra_width_m
+                    stripes += _zebra(a, b, width)
             elif (
                 function == ""
                 and lane.allows("pedestrian")
@@ -515,6 +524,13 @@ def _collect_pedestrian(net: sumolib.net.Net) -> tuple[list[Ring], list[Ring], l
             ):
                 sidewalks += _rings(_strip(shape, width))
     return sidewalks, crossings, stripes
+
+
+def _toward_junction(a: np.ndarray, b: np.ndarray, node_xy) -> np.ndarray:
+    """The unit normal of the crossing a -> b on the side of its junction's centre."""
+    u = (b - a) / float(np.hypot(*(b - a)))
+    n = np.array([-u[1], u[0]])
+    return n if float(np.dot(np.asarray(node_xy[:2], dtype=float) - (a + b) / 2, n)) >= 0 else -n
 
 
 def _zebra(a: np.ndarray, b: np.ndarray, width: float) -> list[Ring]:
@@ -788,15 +804,16 @@ def build_count() -> int:
     return _BUILD_COUNT
 
 
-def build_town_map(net_file: str | os.PathLike, name: str) -> TownMap:
-    """Builds the map from a .net.xml without any caching."""
+def build_town_map(net_file: str | os.PathLike, name: str, zebra_width_m: float | None = None) -> TownMap:
+    """Builds the map from a .net.xml without any caching; `zebra_width_m` paints the crossings'
+    zebras that wide (see _collect_pedestrian), None as wide as the crossings."""
     global _BUILD_COUNT
     _BUILD_COUNT += 1
     log.info("building town map %s from %s", name, net_file)
     net = sumolib.net.readNet(str(net_file), withInternal=True, withPedestrianConnections=True)
     lanes, asphalt = _collect_lanes(net)
     index = {lane.id: i for i, lane in enumerate(lanes)}
-    sidewalks, crossings, stripes = _collect_pedestrian(net)
+    sidewalks, crossings, stripes = _collect_pedestrian(net, zebra_width_m)
     junctions, junction_ids = _collect_junctions(net)
     stop_lines, heads = _signals(net, lanes, index)
     markings = _markings(net, lanes, stop_lines)
@@ -847,13 +864,16 @@ def build_town_map(net_file: str | os.PathLike, name: str) -> TownMap:
     )
 
 
-_MEMO: dict[tuple[str, str, int, int], TownMap] = {}
+_MEMO: dict[tuple[str, str, float | None, int, int], TownMap] = {}
 
 
-def cache_key(net_file: Path, name: str) -> str:
-    """Hash of the net's bytes, the town name (it seeds the buildings) and VERSION."""
+def cache_key(net_file: Path, name: str, zebra_width_m: float | None = None) -> str:
+    """Hash of the net's bytes, the town name (it seeds the buildings), the zebras' painted
+    width when set and VERSION."""
     h = hashlib.sha256(VERSION.encode())
     h.update(name.encode())
+    if zebra_width_m is not None:
+        h.update(f"zebra {zebra_width_m:g}".encode())
     h.update(net_file.read_bytes())
     return h.hexdigest()[:20]
 
@@ -865,11 +885,11 @@ def load_town_map(town: towns.Town, cache_dir: str | os.PathLike | None = None) 
     """
     net_file = Path(town.net_file).resolve()
     st = net_file.stat()
-    memo_key = (str(net_file), town.name, st.st_mtime_ns, st.st_size)
+    memo_key = (str(net_file), town.name, town.zebra_width_m, st.st_mtime_ns, st.st_size)
     if memo_key in _MEMO:
         return _MEMO[memo_key]
     folder = Path(cache_dir) if cache_dir is not None else towns.BUILD / town.folder.name
-    key = cache_key(net_file, town.name)
+    key = cache_key(net_file, town.name, town.zebra_width_m)
     path = folder / f"town_map-{key}.pkl"
     town_map = None
     if path.exists():
@@ -879,7 +899,7 @@ def load_town_map(town: towns.Town, cache_dir: str | os.PathLike | None = None) 
         except (OSError, pickle.UnpicklingError, EOFError, AttributeError) as e:
             log.warning("ignoring unreadable town map cache %s (%s)", path, e)
     if town_map is None:
-        town_map = build_town_map(net_file, town.name)
+        town_map = build_town_map(net_file, town.name, town.zebra_width_m)
         folder.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
         with tmp.open("wb") as f:

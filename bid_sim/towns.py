@@ -71,6 +71,9 @@ class Town:
     speed_limit_mps: float = 11.18
     densities: dict[str, tuple[int, int]] = field(default_factory=lambda: dict(DEFAULT_DENSITY))
     crossing_width_m: float = CROSSING_WIDTH_M
+    # How wide the crossings' zebras are painted (town.toml `zebra_width_m`); None: as wide as the
+    # crossings. Only the picture: walkers keep to the crossing netconvert built.
+    zebra_width_m: float | None = None
 
     @cached_property
     def net_file(self) -> Path:
@@ -124,12 +127,17 @@ def resolve_town(spec: str | os.PathLike) -> Town:
     crossing = settings.get("crossing_width_m", CROSSING_WIDTH_M)
     if isinstance(crossing, bool) or not isinstance(crossing, (int, float)) or not 1.0 <= crossing <= 6.0:
         raise BidError(f"{toml_file}: crossing_width_m must be a width from 1 to 6 m, got {crossing!r}; fix it")
+    zebra = settings.get("zebra_width_m")
+    if zebra is not None and (isinstance(zebra, bool) or not isinstance(zebra, (int, float))
+                              or not 1.0 <= zebra <= 6.0):
+        raise BidError(f"{toml_file}: zebra_width_m must be a width from 1 to 6 m, got {zebra!r}; fix it")
     return Town(
         name=settings.get("name", name),
         folder=folder.resolve(),
         speed_limit_mps=float(settings.get("speed_limit_mps", 11.18)),
         densities=densities,
         crossing_width_m=float(crossing),
+        zebra_width_m=None if zebra is None or zebra == crossing else float(zebra),
     )
 
 
@@ -147,12 +155,16 @@ def netconvert_binary() -> str:
 def net_tag(town: Town) -> str:
     """What the town's net is made of, as 16 hex digits: its plain XML, the crossings' width and
     netconvert's options (or a user's ready .net.xml). Two towns of one name built otherwise (a
-    town.toml with another crossing_width_m) differ here; results and recordings carry it."""
+    town.toml with another crossing_width_m or zebra_width_m) differ here; results and recordings
+    carry it."""
     sources = _sources(town.folder)
+    zebra = b"" if town.zebra_width_m is None else f"zebra {town.zebra_width_m:g}".encode()
     if not sources:
-        return hashlib.sha256(sorted(town.folder.glob("*.net.xml"))[0].read_bytes()).hexdigest()[:16]
+        net_bytes = sorted(town.folder.glob("*.net.xml"))[0].read_bytes()
+        return hashlib.sha256(net_bytes + zebra).hexdigest()[:16]
     digest = hashlib.sha256(NETCONVERT_VERSION_TAG.encode())
     digest.update(f"crossing {town.crossing_width_m:g}".encode())
+    digest.update(zebra)
     for p in sources:
         digest.update(p.name.encode())
         digest.update(p.read_bytes())

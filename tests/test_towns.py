@@ -192,3 +192,36 @@ def test_crossing_width_comes_from_town_toml_and_is_checked(tmp_path):
     (folder / "town.toml").write_text('crossing_width_m = "wide"\n')
     with pytest.raises(BidError, match="crossing_width_m"):
         resolve_town(folder)
+    (folder / "town.toml").write_text("crossing_width_m = 2\nzebra_width_m = 4\n")
+    assert resolve_town(folder).zebra_width_m == 4.0
+    (folder / "town.toml").write_text("crossing_width_m = 2\nzebra_width_m = 2\n")
+    assert resolve_town(folder).zebra_width_m is None  # as wide as the crossings
+    (folder / "town.toml").write_text("zebra_width_m = 9\n")
+    with pytest.raises(BidError, match="zebra_width_m"):
+        resolve_town(folder)
+
+
+def test_2_m_crossings_painted_4_m_wide_look_as_the_4_m_ones(tmp_path, monkeypatch):
+    import numpy as np
+
+    from bid_sim import towns
+    from bid_sim.town_map import build_town_map
+    from bid_sim.towns import net_tag
+
+    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+    wide = resolve_town("02")
+    narrow = _town_with_crossings(tmp_path, "02", 2.0)
+    toml = narrow.folder / "town.toml"
+    toml.write_text("zebra_width_m = 4\n" + toml.read_text())
+    painted = resolve_town(narrow.folder)
+    assert (painted.crossing_width_m, painted.zebra_width_m) == (2.0, 4.0)
+    assert net_tag(painted) != net_tag(narrow)  # results of the two pictures do not mix
+
+    def bars(net, zebra=None):
+        stripes = build_town_map(net, "Town02", zebra).crossing_stripes
+        return np.array(sorted(np.round(np.asarray(r), 3).ravel().tolist() for r in stripes))
+
+    as_4m, as_2m = bars(wide.net_file), bars(narrow.net_file)
+    assert as_4m.shape != as_2m.shape or not np.allclose(as_4m, as_2m, atol=0.01)
+    painted_bars = bars(painted.net_file, painted.zebra_width_m)
+    assert painted_bars.shape == as_4m.shape and np.allclose(painted_bars, as_4m, atol=0.01)
