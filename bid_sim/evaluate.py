@@ -39,12 +39,12 @@ from bid_sim.agents import AGENTS, make_agent
 from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
 from bid_sim.routes import load_routes
-from bid_sim.towns import CROSSING_WIDTH_M, net_tag, resolve_town
+from bid_sim.towns import CROSSING_WIDTH_M, crossing_words, net_tag, resolve_town
 from bid_sim.weather import check_weather
 
 PRIVILEGED = {"expert", "lanefollow"}
 # config.json keys that results written by earlier versions lack; such results still resume.
-ADDED_KEYS = ("town_net", "crossing_width_m")
+ADDED_KEYS = ("town_net", "crossing_width_m", "zebra_width_m")
 
 
 @dataclass(frozen=True)
@@ -236,6 +236,7 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     load_agent(agent, checkpoint, options)  # fail here, once, before any worker starts
     t = resolve_town(town)
     config = {"town": t.name, "town_net": net_tag(t), "crossing_width_m": t.crossing_width_m,
+              "zebra_width_m": t.zebra_width_m,
               "densities": list(densities), "weathers": list(weathers),
               "seeds": seeds, "agent": agent, "checkpoint": str(Path(checkpoint).resolve()) if checkpoint else None,
               "checkpoint_sha256": file_digest(checkpoint) if checkpoint else None,
@@ -431,8 +432,9 @@ def summary_markdown(summary: dict) -> str:
     cfg = summary["config"]
     keys = PAPER_KEYS_LEADERBOARD if cfg["town"] == "Town05" else PAPER_KEYS_NOCRASH
     head = "APA = RC, ADG = DS (the paper's Town05 names)\n\n" if cfg["town"] == "Town05" else ""
-    width = cfg.get("crossing_width_m", CROSSING_WIDTH_M)
-    crossings = f" · {width:g} m crossings" if width != CROSSING_WIDTH_M else ""
+    width, zebra = cfg.get("crossing_width_m", CROSSING_WIDTH_M), cfg.get("zebra_width_m")
+    plain = width == CROSSING_WIDTH_M and zebra is None
+    crossings = "" if plain else f" · {crossing_words(width, zebra)}"
     parts = [f"# {cfg['town']}{crossings} · agent {cfg['agent']} · weathers {', '.join(cfg['weathers'])} · "
              f"{cfg['seeds']} seed(s)\n", head,
              "## By density\n", m.format_table(summary["by_density"], keys), "\n",

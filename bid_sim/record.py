@@ -25,7 +25,7 @@ from bid_sim.parallel import run_parallel
 from bid_sim.perturb import Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
-from bid_sim.towns import Town, net_tag, resolve_town
+from bid_sim.towns import Town, crossing_words, net_tag, resolve_town
 from bid_sim.weather import check_weather
 
 log = logging.getLogger(__name__)
@@ -94,8 +94,10 @@ def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None
     if theirs.get("town") != town.name:
         differ.insert(0, f"town {theirs.get('town')!r} here, {town.name!r} planned")
     elif theirs.get("town_net", tag) != tag:  # files recorded before it was written lack it
-        differ.insert(0, f"town {town.name} with crossings {theirs.get('crossing_width_m', '?')} m here, "
-                         f"{town.crossing_width_m:g} m planned, or another net")
+        width, zebra = theirs.get("crossing_width_m"), theirs.get("zebra_width_m")
+        here = crossing_words(float(width), float(zebra) if zebra else None) if width else "crossings of unknown width"
+        differ.insert(0, f"town {town.name} with {here} here, "
+                         f"{crossing_words(town.crossing_width_m, town.zebra_width_m)} planned, or another net")
     if differ:
         raise BidError(f"{path} belongs to another recording ({'; '.join(differ)}): record into another "
                        f"--out folder, or give the options that recording was made with to finish it")
@@ -115,7 +117,9 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     town_map = load_town_map(town)
     renderer = Renderer(town_map, weather=spec.weather, seed=spec.seed)
     facts = {"town": town.name, "town_source": spec.town, "town_net": net_tag(town),
-             "crossing_width_m": f"{town.crossing_width_m:g}", "route": plan_facts(spec)["route"], "episode": str(spec.index),
+             "crossing_width_m": f"{town.crossing_width_m:g}",
+             "zebra_width_m": "" if town.zebra_width_m is None else f"{town.zebra_width_m:g}",
+             "route": plan_facts(spec)["route"], "episode": str(spec.index),
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
              "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}

@@ -152,6 +152,12 @@ def netconvert_binary() -> str:
     return str(Path(sumo.SUMO_HOME) / "bin" / "netconvert")
 
 
+def crossing_words(width_m: float, zebra_width_m: float | None = None) -> str:
+    """How a town's crossings are built and painted, for titles and messages: '2 m crossings' or
+    '2 m crossings painted 4 m wide'."""
+    return f"{width_m:g} m crossings" + ("" if zebra_width_m is None else f" painted {zebra_width_m:g} m wide")
+
+
 def net_tag(town: Town) -> str:
     """What the town's net is made of, as 16 hex digits: its plain XML, the crossings' width and
     netconvert's options (or a user's ready .net.xml). Two towns of one name built otherwise (a

@@ -141,13 +141,14 @@ def test_results_name_the_net_and_another_crossing_width_is_refused(serial, tmp_
     out, summary = serial
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["town_net"] == towns.net_tag(towns.resolve_town("02")) and cfg["crossing_width_m"] == 4.0
+    assert cfg["zebra_width_m"] is None
     assert "crossings" not in summary_markdown(summary)
     argv = ["evaluate", "--density", "none", "--weathers", "WetSunset", "--routes", "0,3",
             "--agent", "bid_sim.agents:LaneFollower", "--workers", "1", "--json", "--seeds", "1"]
     old = tmp_path / "old"
     shutil.copytree(out, old)
     (old / "config.json").write_text(json.dumps({k: v for k, v in cfg.items()
-                                                 if k not in ("town_net", "crossing_width_m")}))
+                                                 if k not in ("town_net", "crossing_width_m", "zebra_width_m")}))
     assert main([*argv, "--town", "02", "--out", str(old)]) == 0
     monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
     narrow = tmp_path / "town02"
@@ -158,6 +159,8 @@ def test_results_name_the_net_and_another_crossing_width_is_refused(serial, tmp_
     assert "another configuration (town_net, crossing_width_m differ)" in capsys.readouterr().err
     two = {**summary, "config": {**summary["config"], "crossing_width_m": 2.0}}
     assert summary_markdown(two).startswith("# Town02 · 2 m crossings · agent")
+    painted = {**summary, "config": {**summary["config"], "crossing_width_m": 2.0, "zebra_width_m": 4.0}}
+    assert summary_markdown(painted).startswith("# Town02 · 2 m crossings painted 4 m wide · agent")
 
 
 def test_compare(serial, tmp_path, capsys):

@@ -186,11 +186,12 @@ def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_pat
 
     facts = read_facts(files(tmp_path)[0])
     assert facts["town_net"] == towns.net_tag(towns.resolve_town("02")) and facts["crossing_width_m"] == "4"
+    assert facts["zebra_width_m"] == ""  # painted as wide as the crossings
     monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
     narrow = tmp_path / "narrow"  # the same town with 2 m crossings: another net, refused
     shutil.copytree(towns.resolve_town("02").folder, narrow)
     (narrow / "town.toml").write_text("crossing_width_m = 2\n" + (narrow / "town.toml").read_text())
-    with pytest.raises(BidError, match="crossings 4 m here, 2 m planned"):
+    with pytest.raises(BidError, match="4 m crossings here, 2 m crossings planned"):
         record(**{**same, "town": str(narrow)})
 
 
