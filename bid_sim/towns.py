@@ -49,13 +49,13 @@ NETCONVERT_OPTIONS = (
     "--junctions.join", "false",
 )
 NETCONVERT_VERSION_TAG = "bid-sim-netconvert-v2"
-# netconvert's crossing width, which the benchmark's figures and the shipped BID's training
-# data were made with. At 4 m the outer metre of each crossing's end lies in the carriageway
-# beyond the walking area's rounded corner, and people waiting there for the light stand
-# where a right-turning car's body passes (Town01 96, Town02 59, Town05 230 waiting places);
-# at 2 m (`crossing_width_m = 2` in town.toml) none does. Not the default: the shipped BID,
-# trained on 4 m zebras, drives 2 m towns worse (without traffic 35 red lights against 10;
-# docs/experiments.md, 2026-12-04) until it is trained on them.
+# netconvert's crossing width, for a town whose town.toml names none. At 4 m the outer metre of
+# each crossing's end lies in the carriageway beyond the walking area's rounded corner, and
+# people waiting there for the light stand where a right-turning car's body passes (Town01 96,
+# Town02 59, Town05 230 waiting places); at 2 m none does. The built-in towns set
+# `crossing_width_m = 2` and paint them 4 m wide (`zebra_width_m = 4`) since 2026-12-05: their
+# figures before were made on 4 m crossings, and the shipped BID, trained on 4 m zebras, drives
+# 2 m towns painted 2 m worse (without traffic 35 red lights against 10; docs/experiments.md).
 CROSSING_WIDTH_M = 4.0
 
 # Used when a user's town folder has no town.toml.

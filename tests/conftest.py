@@ -1,5 +1,7 @@
 """Shared fixtures: towns are built once per session (netconvert on demand)."""
 
+import shutil
+
 import pytest
 
 from bid_sim.record import record
@@ -30,6 +32,28 @@ def recorded(tmp_path_factory):
     summary = record(out=out, **RECORD_PLAN)
     assert summary["recorded"] == 2 and not summary["failed"]
     return out
+
+
+@pytest.fixture
+def town_with_crossings(tmp_path, monkeypatch):
+    """make(name, width_m, zebra_width_m=None): a copy of a built-in town under tmp_path with
+    crossings `width_m` wide, painted `zebra_width_m` wide (as wide unless given); from then on
+    nets are built under tmp_path."""
+    from bid_sim import towns
+
+    def make(name: str, width_m: float, zebra_width_m: float | None = None):
+        monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
+        folder = tmp_path / f"town{name}_{width_m:g}_{zebra_width_m or width_m:g}"
+        shutil.copytree(resolve_town(name).folder, folder)
+        toml = folder / "town.toml"
+        kept = [ln for ln in toml.read_text().splitlines()
+                if not ln.startswith(("crossing_width_m", "zebra_width_m"))]
+        keys = [f"crossing_width_m = {width_m:g}"]
+        keys += [f"zebra_width_m = {zebra_width_m:g}"] if zebra_width_m else []
+        toml.write_text("\n".join(keys + kept) + "\n")  # before its tables
+        return resolve_town(folder)
+
+    return make
 
 
 @pytest.fixture

@@ -132,17 +132,17 @@ def test_other_configuration_is_refused_but_more_seeds_extend_a_run(serial, tmp_
     assert "another configuration (seeds, routes differ)" in capsys.readouterr().err
 
 
-def test_results_name_the_net_and_another_crossing_width_is_refused(serial, tmp_path, monkeypatch, capsys):
-    """Results of Town02 and of a Town02 folder with 2 m crossings do not mix in one --out;
-    results written before config.json named the net still resume; a summary names a crossing
-    width other than netconvert's."""
+def test_results_name_the_net_and_another_crossing_width_is_refused(serial, tmp_path, town_with_crossings, capsys):
+    """Results of Town02 and of a Town02 folder with 4 m crossings do not mix in one --out;
+    results written before config.json named the net still resume; a summary names crossings
+    other than netconvert's 4 m."""
     from bid_sim import towns
 
     out, summary = serial
     cfg = json.loads((out / "config.json").read_text())
-    assert cfg["town_net"] == towns.net_tag(towns.resolve_town("02")) and cfg["crossing_width_m"] == 4.0
-    assert cfg["zebra_width_m"] is None
-    assert "crossings" not in summary_markdown(summary)
+    assert cfg["town_net"] == towns.net_tag(towns.resolve_town("02"))
+    assert (cfg["crossing_width_m"], cfg["zebra_width_m"]) == (2.0, 4.0)
+    assert summary_markdown(summary).startswith("# Town02 · 2 m crossings painted 4 m wide · agent")
     argv = ["evaluate", "--density", "none", "--weathers", "WetSunset", "--routes", "0,3",
             "--agent", "bid_sim.agents:LaneFollower", "--workers", "1", "--json", "--seeds", "1"]
     old = tmp_path / "old"
@@ -150,17 +150,13 @@ def test_results_name_the_net_and_another_crossing_width_is_refused(serial, tmp_
     (old / "config.json").write_text(json.dumps({k: v for k, v in cfg.items()
                                                  if k not in ("town_net", "crossing_width_m", "zebra_width_m")}))
     assert main([*argv, "--town", "02", "--out", str(old)]) == 0
-    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
-    narrow = tmp_path / "town02"
-    shutil.copytree(towns.resolve_town("02").folder, narrow)
-    (narrow / "town.toml").write_text("crossing_width_m = 2\n" + (narrow / "town.toml").read_text())
+    wide = town_with_crossings("02", 4.0)
     capsys.readouterr()
-    assert main([*argv, "--town", str(narrow), "--out", str(out)]) == 2
-    assert "another configuration (town_net, crossing_width_m differ)" in capsys.readouterr().err
-    two = {**summary, "config": {**summary["config"], "crossing_width_m": 2.0}}
-    assert summary_markdown(two).startswith("# Town02 · 2 m crossings · agent")
-    painted = {**summary, "config": {**summary["config"], "crossing_width_m": 2.0, "zebra_width_m": 4.0}}
-    assert summary_markdown(painted).startswith("# Town02 · 2 m crossings painted 4 m wide · agent")
+    assert main([*argv, "--town", str(wide.folder), "--out", str(out)]) == 2
+    assert "another configuration (town_net, crossing_width_m, zebra_width_m differ)" in capsys.readouterr().err
+    for width, zebra, title in ((4.0, None, "# Town02 · agent"), (2.0, None, "# Town02 · 2 m crossings · agent")):
+        other = {**summary, "config": {**summary["config"], "crossing_width_m": width, "zebra_width_m": zebra}}
+        assert summary_markdown(other).startswith(title)
 
 
 def test_compare(serial, tmp_path, capsys):

@@ -249,7 +249,8 @@ def test_a_route_past_the_same_crossing_twice_has_one_interval_per_pass(town02):
 
 def _walker_beside(expert):
     """The ego standing 1 m before the first crossing it reaches at J400, and a
-    pedestrian on the sidewalk to its right, beside its front, walking its way."""
+    pedestrian on the sidewalk to its right, beside its front, walking its way at 1.5 m/s
+    (at 1.2 m/s it would reach the 2 m crossings' exit crossing after the car has cleared it)."""
     plan = expert.plan
     c_in = plan.crossings[0][0]
     s_f = c_in - 1.0
@@ -258,7 +259,7 @@ def _walker_beside(expert):
     h = float(plan.heading[plan.index(s_f)])
     px, py = plan.point(s_f)
     ped = Actors(("walker",), np.array([[px + 3.6 * math.sin(h), py - 3.6 * math.cos(h)]]),
-                 np.array([h]), np.array([1.2]), np.array([[0.5, 0.6, 1.75]]), np.array([0]))
+                 np.array([h]), np.array([1.5]), np.array([[0.5, 0.6, 1.75]]), np.array([0]))
     snap = SimpleNamespace(pedestrians=ped, ego=SimpleNamespace(x_m=x, y_m=y, speed_mps=0.0))
     constraints, _ = expert._pedestrians(snap, s_c, s_f)
     return [c.reason for c in constraints]

@@ -169,7 +169,7 @@ def test_record_bends_takes_routes_round_a_corner(tmp_path):
         assert any(s <= 250.0 for s, _ in route.road_bends())
 
 
-def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_path, monkeypatch):
+def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_path, town_with_crossings):
     """Rerunning finishes an interrupted recording; the same folder with another --seed,
     --perturb or --agent is refused before anything is written, the files left as they were."""
     for f in files(recorded):
@@ -185,14 +185,11 @@ def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_pat
     from bid_sim.recording import read_facts
 
     facts = read_facts(files(tmp_path)[0])
-    assert facts["town_net"] == towns.net_tag(towns.resolve_town("02")) and facts["crossing_width_m"] == "4"
-    assert facts["zebra_width_m"] == ""  # painted as wide as the crossings
-    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
-    narrow = tmp_path / "narrow"  # the same town with 2 m crossings: another net, refused
-    shutil.copytree(towns.resolve_town("02").folder, narrow)
-    (narrow / "town.toml").write_text("crossing_width_m = 2\n" + (narrow / "town.toml").read_text())
-    with pytest.raises(BidError, match="4 m crossings here, 2 m crossings planned"):
-        record(**{**same, "town": str(narrow)})
+    assert facts["town_net"] == towns.net_tag(towns.resolve_town("02"))
+    assert (facts["crossing_width_m"], facts["zebra_width_m"]) == ("2", "4")
+    wide = town_with_crossings("02", 4.0)  # the same town with 4 m crossings: another net, refused
+    with pytest.raises(BidError, match="2 m crossings painted 4 m wide here, 4 m crossings planned"):
+        record(**{**same, "town": str(wide.folder)})
 
 
 def test_record_from_a_town_folder_writes_into_out(tmp_path, monkeypatch):

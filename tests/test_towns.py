@@ -163,30 +163,22 @@ def _waiting_places_in_turning_paths(net_file) -> list[tuple[str, float, float]]
     return found
 
 
-def _town_with_crossings(tmp_path, name: str, width_m: float):
-    folder = tmp_path / f"town{name}_{width_m:g}"
-    shutil.copytree(resolve_town(name).folder, folder)
-    toml = folder / "town.toml"
-    toml.write_text(f"crossing_width_m = {width_m:g}\n" + toml.read_text())  # before its tables
-    return resolve_town(folder)
-
-
 @pytest.mark.parametrize("name", ["01", "02", "05"])
-def test_people_waiting_at_2_m_crossings_stand_clear_of_turning_cars(name, tmp_path, monkeypatch):
-    from bid_sim import towns
-
-    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
-    # netconvert's 4 m crossings (the default, which the benchmark was made with) leave the
-    # outer stripe of each end in the carriageway beside the walking area's rounded corner,
-    # where right-turning cars pass; 2 m crossings (town.toml) do not.
-    assert _waiting_places_in_turning_paths(resolve_town(name).net_file)
-    assert _waiting_places_in_turning_paths(_town_with_crossings(tmp_path, name, 2.0).net_file) == []
+def test_people_waiting_at_2_m_crossings_stand_clear_of_turning_cars(name, town_with_crossings):
+    # netconvert's 4 m crossings (the built-in towns' until 2026-12-05) leave the outer stripe of
+    # each end in the carriageway beside the walking area's rounded corner, where right-turning
+    # cars pass; the built-in towns' 2 m crossings do not.
+    town = resolve_town(name)
+    assert (town.crossing_width_m, town.zebra_width_m) == (2.0, 4.0)
+    assert _waiting_places_in_turning_paths(town.net_file) == []
+    assert _waiting_places_in_turning_paths(town_with_crossings(name, 4.0).net_file)
 
 
 def test_crossing_width_comes_from_town_toml_and_is_checked(tmp_path):
     folder = tmp_path / "mytown"  # resolving a town does not build its net
     shutil.copytree(resolve_town("02").folder, folder)
-    assert resolve_town(folder).crossing_width_m == 4.0
+    (folder / "town.toml").unlink()
+    assert (resolve_town(folder).crossing_width_m, resolve_town(folder).zebra_width_m) == (4.0, None)
     (folder / "town.toml").write_text('name = "Mine"\ncrossing_width_m = 2.5\n')
     assert resolve_town(folder).crossing_width_m == 2.5
     (folder / "town.toml").write_text('crossing_width_m = "wide"\n')
@@ -201,19 +193,14 @@ def test_crossing_width_comes_from_town_toml_and_is_checked(tmp_path):
         resolve_town(folder)
 
 
-def test_2_m_crossings_painted_4_m_wide_look_as_the_4_m_ones(tmp_path, monkeypatch):
+def test_2_m_crossings_painted_4_m_wide_look_as_the_4_m_ones(town_with_crossings):
     import numpy as np
 
-    from bid_sim import towns
     from bid_sim.town_map import build_town_map
     from bid_sim.towns import net_tag
 
-    monkeypatch.setattr(towns, "BUILD", tmp_path / "build")
-    wide = resolve_town("02")
-    narrow = _town_with_crossings(tmp_path, "02", 2.0)
-    toml = narrow.folder / "town.toml"
-    toml.write_text("zebra_width_m = 4\n" + toml.read_text())
-    painted = resolve_town(narrow.folder)
+    wide, narrow = town_with_crossings("02", 4.0), town_with_crossings("02", 2.0)
+    painted = resolve_town("02")  # the built-in town: 2 m crossings painted 4 m wide
     assert (painted.crossing_width_m, painted.zebra_width_m) == (2.0, 4.0)
     assert net_tag(painted) != net_tag(narrow)  # results of the two pictures do not mix
 
