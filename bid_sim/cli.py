@@ -22,13 +22,14 @@ def _towns(args: argparse.Namespace) -> int:
         print(json.dumps(rows, indent=1))
         return 0
     print(f"{'town':<10}{'size (m)':>14}{'junctions':>11}{'T':>4}{'4-way':>7}{'signals':>9}"
-          f"{'lanes/dir':>11}{'streets (km)':>14}")
+          f"{'lanes/dir':>11}{'streets (km)':>14}{'crossing/zebra (m)':>20}")
     for r in rows:
         lanes = "–".join(str(n) for n in (r["lanes_per_direction"][0], r["lanes_per_direction"][-1]))
         lanes = lanes if r["lanes_per_direction"][0] != r["lanes_per_direction"][-1] else str(r["lanes_per_direction"][0])
+        crossings = f"{r['crossing_width_m']:g} / {r['zebra_width_m']:g}"
         print(f"{r['town']:<10}{r['width_m']:>7.0f} × {r['height_m']:<4.0f}{r['junctions']:>11}"
               f"{r['t_junctions']:>4}{r['four_way']:>7}{r['signalised']:>9}{lanes:>11}"
-              f"{r['street_length_m'] / 1000:>14.2f}")
+              f"{r['street_length_m'] / 1000:>14.2f}{crossings:>20}")
     return 0
 
 

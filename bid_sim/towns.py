@@ -264,6 +264,8 @@ def describe_town(town: Town) -> dict:
         "signalised": len(signalised),
         "lanes_per_direction": lanes,
         "street_length_m": round(street_m, 1),
+        "crossing_width_m": town.crossing_width_m,
+        "zebra_width_m": town.zebra_width_m or town.crossing_width_m,
     }
 
 

@@ -56,6 +56,7 @@ def test_towns_json_keys(capsys):
     row = json.loads(capsys.readouterr().out)[0]
     for key in ("town", "width_m", "height_m", "junctions", "t_junctions", "four_way", "signalised", "street_length_m"):
         assert key in row
+    assert (row["crossing_width_m"], row["zebra_width_m"]) == (2.0, 4.0)
 
 
 @pytest.mark.parametrize("spec", ["07", "town9", "/no/such/folder"])
