@@ -95,7 +95,9 @@ def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None
         differ.insert(0, f"town {theirs.get('town')!r} here, {town.name!r} planned")
     elif theirs.get("town_net", tag) != tag:  # files recorded before it was written lack it
         width, zebra = theirs.get("crossing_width_m"), theirs.get("zebra_width_m")
-        here = crossing_words(float(width), float(zebra) if zebra else None) if width else "crossings of unknown width"
+        here = "crossings of unknown width"
+        if width:
+            here = crossing_words(float(width), float(zebra) if zebra else None)
         differ.insert(0, f"town {town.name} with {here} here, "
                          f"{crossing_words(town.crossing_width_m, town.zebra_width_m)} planned, or another net")
     if differ:
