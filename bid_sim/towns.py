@@ -124,13 +124,8 @@ def resolve_town(spec: str | os.PathLike) -> Town:
     densities = dict(DEFAULT_DENSITY)
     for k, v in settings.get("density", {}).items():
         densities[k] = (int(v[0]), int(v[1]))
-    crossing = settings.get("crossing_width_m", CROSSING_WIDTH_M)
-    if isinstance(crossing, bool) or not isinstance(crossing, (int, float)) or not 1.0 <= crossing <= 6.0:
-        raise BidError(f"{toml_file}: crossing_width_m must be a width from 1 to 6 m, got {crossing!r}; fix it")
-    zebra = settings.get("zebra_width_m")
-    if zebra is not None and (isinstance(zebra, bool) or not isinstance(zebra, (int, float))
-                              or not 1.0 <= zebra <= 6.0):
-        raise BidError(f"{toml_file}: zebra_width_m must be a width from 1 to 6 m, got {zebra!r}; fix it")
+    crossing = _width(settings, "crossing_width_m", toml_file) or CROSSING_WIDTH_M
+    zebra = _width(settings, "zebra_width_m", toml_file)
     return Town(
         name=settings.get("name", name),
         folder=folder.resolve(),
@@ -139,6 +134,15 @@ def resolve_town(spec: str | os.PathLike) -> Town:
         crossing_width_m=float(crossing),
         zebra_width_m=None if zebra is None or zebra == crossing else float(zebra),
     )
+
+
+def _width(settings: dict, key: str, toml_file: Path) -> float | None:
+    """A crossing or zebra width from town.toml (None where unset), checked to be 1 to 6 m."""
+    value = settings.get(key)
+    if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
+                              or not 1.0 <= value <= 6.0):
+        raise BidError(f"{toml_file}: {key} must be a width from 1 to 6 m, got {value!r}; fix it")
+    return value
 
 
 def _sources(folder: Path) -> list[Path]:
