@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from bid_model.checkpoint import load_model
+from bid_model.config import PATH_KINDS
 from bid_model.data import command_one_hot, prepare_frame
 from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, SEEN_NEARNESS
 from bid_sim.agents import EpisodeInfo, Observation
@@ -232,6 +233,11 @@ class BIDAgent:
     made against the control head (they overrode an accel of 0 or more within BRAKED_STOP_S of
     the ego coming to stand). The control head, standing, mostly stands on: a stop it did not ask
     for then costs move_off's whole wait (docs/experiments.md).
+    move_off_sc: with move_off, for a model with SC, the pedestrian and the vehicle move-off waits
+    for are SC's alone, not the larger of SC's and the hazard head's (the brakes still read
+    both). The head reads the speed input, and standing it reads a vehicle 7-8 m ahead in an
+    empty street (the expert stands mostly behind one); SC reads the frames alone
+    (docs/experiments.md, "The hazard head reads the speed").
     """
 
     uses_camera = True
@@ -243,7 +249,7 @@ class BIDAgent:
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
                  start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None,
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
-                 turn_speed: float = 0.0):
+                 turn_speed: float = 0.0, move_off_sc: bool = False):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -292,6 +298,14 @@ class BIDAgent:
         if move_off_braked is not None and not 0 <= move_off_braked <= move_off:
             raise BidError(f"move_off_braked is a wait in seconds, from 0 to move_off ({move_off:g}); got {move_off_braked}")
         self.braked_steps = round(move_off_braked / DT_S) if move_off_braked is not None else None
+        if move_off_sc and not move_off:
+            raise BidError("move_off_sc is what move_off waits for; add move_off, or drop it")
+        if move_off_sc and not self.config.model.hazard_sc:
+            raise BidError(f"{checkpoint} has no SC for move_off_sc to read; train one with --hazard-sc, "
+                           "or drop move_off_sc")
+        if move_off_sc and path_memory:
+            raise BidError("move_off_sc reads SC as it sees now, path_memory what was seen; keep one")
+        self.move_off_sc = move_off_sc
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -358,7 +372,8 @@ class BIDAgent:
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0 or self.crossing_brake > 0)
-        out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard)
+        out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard,
+                         hazard_apart=self.move_off_sc)
         control, *extra = out if isinstance(out, tuple) else (out,)
         accel, v = float(control[0, 1]), float(obs.speed_mps)
         if by_forecast:
@@ -369,11 +384,15 @@ class BIDAgent:
             if need > 0:
                 accel = min(accel, -self.forecast_brake * need)
         if by_hazard:
-            near = tuple(float(x) for x in extra.pop(0)[0])
+            hazard = extra.pop(0)
+            near = clear_near = tuple(float(x) for x in
+                                      (self.model.merge_hazard(hazard) if self.move_off_sc else hazard)[0])
+            if self.move_off_sc:  # SC's pedestrian and vehicle, the head's red light
+                clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *near[len(PATH_KINDS):])
             if self.memory is not None:
-                near = self.memory.update(near, v)
+                near = clear_near = self.memory.update(near, v)
             if self.move_off_steps:
-                accel = self._move_off(accel, v, near)
+                accel = self._move_off(accel, v, clear_near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
                        self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None),
                        self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0,

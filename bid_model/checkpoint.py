@@ -98,7 +98,7 @@ AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
 # Fields that shape a head beside its own (→ their value without it): heads alike agree on them too.
 HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False, "hazard_attend": False,
                                                    "hazard_sc": False, "sc_presence": False, "sc_still": False,
-                                                   "hazard_crossing": False}}
+                                                   "hazard_crossing": False, "hazard_speedless": False}}
 
 
 def average_checkpoints(paths: list[str | Path], out: str | Path,

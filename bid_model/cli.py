@@ -87,6 +87,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard-sc, SC reads frame t alone (its change since t-1 zeroed): the "
                         "change is mostly the ego's own motion, from which SC learnt that a moving car "
                         "has nothing in its path; --init from a checkpoint with SC keeps its weights")
+    p.add_argument("--hazard-speedless", action="store_true", default=None,
+                   help="with --hazard and a speed input, the hazard head reads MPC's tokens merged without "
+                        "the speed token (standing, the head with it read a car ahead in an empty street); "
+                        "--init from a checkpoint without it keeps every weight")
     p.add_argument("--hazard-crossing", action="store_true", default=None,
                    help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
                         "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")

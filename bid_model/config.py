@@ -32,7 +32,7 @@ INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
 # Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
-READ_FIELDS = frozenset({"sc_still"})
+READ_FIELDS = frozenset({"sc_still", "hazard_speedless"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -102,6 +102,12 @@ class ModelConfig:
     # A fourth hazard output from a second SC map of its own (BID.hazard_crossing): how near the
     # next crossing on the path with a pedestrian on it is (bid_model.hazards.crossing_distances).
     hazard_crossing: bool = False
+    # The hazard head reads MPC's tokens merged a second time without the speed token, so that it
+    # cannot read "standing, so something ahead": with the speed, the shipped head read a vehicle
+    # 7.5 m ahead of a standing ego in an empty street (at 5 m/s: none), which kept move-off
+    # waiting (docs/experiments.md, "The hazard head reads the speed"). The forecast and the
+    # control head still read the speed.
+    hazard_speedless: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -121,6 +127,8 @@ class ModelConfig:
             raise ValueError("sc_still is how SC reads: it needs hazard_sc")
         if self.hazard_crossing and not (self.hazard_sc and self.hazard_light):
             raise ValueError("hazard_crossing is the fourth hazard output, beside SC: it needs hazard_sc and hazard_light")
+        if self.hazard_speedless and not (self.hazard and self.speed_input):
+            raise ValueError("hazard_speedless keeps the speed input from the hazard head: it needs hazard and speed_input")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 

@@ -272,6 +272,8 @@ class BID(nn.Module):
             speed = speed_mps.reshape(b, 1, 1).float() / SPEED_SCALE_MPS
             streams["speed"] = self.speed_token(speed)
         feats["MPC"] = self._area("MPC", streams)
+        if c.hazard_speedless:  # for the hazard head alone
+            feats["MPC_speedless"] = self._speedless_mpc({k: v for k, v in streams.items() if k != "speed"})
         if self.hazard_sc is not None:
             seen = self._normalise(frame_t)
             feats["SC"] = self.hazard_sc(seen, seen if self.config.sc_still else self._normalise(frame_prev),
@@ -282,6 +284,18 @@ class BID(nn.Module):
         if self.training:
             self.mean_batches += 1
         return feats
+
+    def _speedless_mpc(self, streams: dict[str, torch.Tensor]) -> torch.Tensor:
+        """MPC's tokens merged from the streams without the speed token (config.hazard_speedless),
+        under MPC's lesion: zeros, or MPC's mean token in place of every token. It leaves MPC's
+        mean activation alone (that is of the tokens with the speed)."""
+        out = self.areas["MPC"](streams)
+        mode = self.lesions.get("MPC")
+        if mode == "zero":
+            return torch.zeros_like(out)
+        if mode == "mean":
+            return self.mean_MPC.mean(0).to(out.dtype).expand_as(out).clone()
+        return out
 
     def forward_head(self, features: dict[str, torch.Tensor]) -> torch.Tensor:
         """CPC: MPC's tokens → (batch, 2) = (steer, accel), each in [−1, 1]."""
@@ -304,19 +318,35 @@ class BID(nn.Module):
         column is how near an occupied crossing is (its own SC map's), both ways."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
+        mpc = features["MPC_speedless"] if self.config.hazard_speedless else features["MPC"]
         if self.config.hazard_attend:
-            near = self.hazard_head(features)
+            near = self.hazard_head({**features, "MPC": mpc})
         else:
-            near = self.hazard_head(features["MPC"].mean(dim=1))
+            near = self.hazard_head(mpc.mean(dim=1))
         if self.hazard_sc is not None:  # what either sees in the path
-            sc, k = features["SC"].to(near.dtype), len(PATH_KINDS)
             crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
-            if apart:
-                return torch.cat([near, sc, *crossing], dim=1)
-            if self.config.sc_presence:  # its nearness where it says one is in the path, else none
-                sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
-            near = torch.cat([torch.maximum(near[:, :k], sc), near[:, k:], *crossing], dim=1)
+            near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
+            if not apart:
+                near = self.merge_hazard(near)
         return near
+
+    def sc_near(self, apart: torch.Tensor) -> torch.Tensor:
+        """(batch, 2): SC's own (pedestrian, vehicle) nearness out of forward_hazard(apart=True)'s
+        columns (a model with SC); with config.sc_presence only where its logit says one is in the
+        path, else 0."""
+        k, n = len(PATH_KINDS), 2 + int(self.config.hazard_light)
+        sc = apart[:, n:n + k * (2 if self.config.sc_presence else 1)]
+        if self.config.sc_presence:
+            sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
+        return sc
+
+    def merge_hazard(self, apart: torch.Tensor) -> torch.Tensor:
+        """forward_hazard(apart=True)'s columns (a model with SC) as forward_hazard gives them: the
+        pedestrian's and the vehicle's nearness the larger of the head's and SC's (sc_near), then
+        the head's others, then the crossing map's."""
+        k, n = len(PATH_KINDS), 2 + int(self.config.hazard_light)
+        crossing = apart[:, n + k * (2 if self.config.sc_presence else 1):]
+        return torch.cat([torch.maximum(apart[:, :k], self.sc_near(apart)), apart[:, k:n], crossing], dim=1)
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,

@@ -881,6 +881,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
+             "--hazard-speedless": args.hazard_speedless,
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
@@ -996,6 +997,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard_sc:
             raise BidError("--hazard-crossing is a second SC map beside SC: add --hazard-sc (and --hazard WEIGHT)")
         model = dataclasses.replace(model, hazard_crossing=True)
+    if args.hazard_speedless:
+        if not (model.hazard and model.speed_input):
+            raise BidError("--hazard-speedless keeps the speed input from the hazard head: add --hazard WEIGHT "
+                           "(the preset's model must take the speed)")
+        model = dataclasses.replace(model, hazard_speedless=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

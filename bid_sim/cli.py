@@ -139,7 +139,8 @@ def _evaluate(args: argparse.Namespace) -> int:
               "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
               "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
               "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
-              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed}
+              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
+              "move_off_sc": args.move_off_sc}
     for key, value in brakes.items():
         if value is not None and args.agent != "bid":
             raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
@@ -334,6 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--sc-still-moving", action="store_true", default=None,
                     help="--agent bid with SC: as --sc-still, but only while the ego moves (0.3 m/s or "
                          "faster); standing, SC reads both frames as trained (bid_model/agent.py)")
+    ev.add_argument("--move-off-sc", action="store_true", default=None,
+                    help="--agent bid with --move-off and SC: move-off waits for the pedestrian and the "
+                         "vehicle SC sees, not the hazard head (which reads the speed input and, standing, "
+                         "a car ahead in an empty street) (bid_model/agent.py)")
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

@@ -610,3 +610,68 @@ def test_sc_still_moving_reads_sc_still_only_while_the_ego_moves(checkpoint, tmp
         BIDAgent(shipped, sc_still=True, sc_still_moving=True)
     assert main(["evaluate", "--agent", "expert", "--sc-still-moving", "--out", str(tmp_path / "x")]) == 2
     assert "--sc-still-moving is an option of --agent bid" in capsys.readouterr().err
+
+
+def test_move_off_sc_waits_for_what_sc_sees_not_the_head(tmp_path, capsys):
+    """`bid evaluate --move-off-sc`: a standing ego moves off while the hazard head reads a
+    vehicle near and SC reads none, and waits while SC reads one; the brakes read the larger of
+    the two either way. It needs move-off and SC, and is not taken with path memory."""
+    import numpy as np
+    import torch
+
+    from bid_model.agent import MOVE_OFF_ACCEL, vehicle_brake
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    frame = np.random.default_rng(4).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    agents = {"sc": BIDAgent(shipped, move_off=0.3, vehicle_brake=1.0, move_off_sc=True),
+              "both": BIDAgent(shipped, move_off=0.3, vehicle_brake=1.0)}
+
+    def see(head_vehicle: float, sc_vehicle: float) -> None:
+        with torch.no_grad():
+            for agent in agents.values():
+                agent.model.areas["CPC"].head[-1].weight.zero_()  # the control head stands
+                agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, -100.0]))
+                agent.model.hazard_head[-1].weight.zero_()
+                agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, head_vehicle, 0.0]))
+                agent.model.hazard_sc.priority[-1].weight.zero_()
+                agent.model.hazard_sc.priority[-1].bias.copy_(torch.tensor([0.0, sc_vehicle]))
+                agent.reset(None)
+
+    still = Observation(frame, frame, 4, 0.0, None)
+    see(head_vehicle=0.9, sc_vehicle=0.0)
+    assert [agents["sc"].act(still).accel for _ in range(3)] == pytest.approx([-1.0, -1.0, MOVE_OFF_ACCEL], abs=1e-5)
+    assert [agents["both"].act(still).accel for _ in range(3)] == pytest.approx([-1.0] * 3, abs=1e-5)
+    see(head_vehicle=0.0, sc_vehicle=0.9)
+    assert [agents["sc"].act(still).accel for _ in range(3)] == pytest.approx([-1.0] * 3, abs=1e-5)
+    # Moving, the vehicle brake reads the larger of the two, as without move_off_sc.
+    see(head_vehicle=0.0, sc_vehicle=0.0)
+    with torch.no_grad():
+        for agent in agents.values():
+            agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, 100.0]))
+            agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.7, 0.0]))
+    moving = Observation(frame, frame, 4, 6.0, None)
+    assert 0 < vehicle_brake(0.7, 6.0) < 1
+    assert agents["sc"].act(moving).accel == pytest.approx(-vehicle_brake(0.7, 6.0), abs=1e-5)
+    assert agents["both"].act(moving).accel == pytest.approx(-vehicle_brake(0.7, 6.0), abs=1e-5)
+    # merge_hazard of the head's and SC's columns is the hazard output the brakes read.
+    frame_t, prev, cmd, speed = one_input(agents["sc"].hw, seed=2, command=2, speed_mps=0.0)
+    model = BIDAgent(shipped).model
+    with torch.inference_mode():
+        apart = model(frame_t, prev, cmd, speed, hazard=True, hazard_apart=True)[1]
+        assert torch.equal(model.merge_hazard(apart), model(frame_t, prev, cmd, speed, hazard=True)[1])
+    with pytest.raises(BidError, match="add move_off"):
+        BIDAgent(shipped, vehicle_brake=1.0, move_off_sc=True)
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+
+    blind = load_checkpoint(shipped)  # the shipped checkpoint with its SC taken out
+    blind["config"]["model"]["hazard_sc"] = False
+    blind["model"] = {k: v for k, v in blind["model"].items() if not k.startswith("hazard_sc.")}
+    save_checkpoint(tmp_path / "no_sc.pt", blind)
+    assert BIDAgent(tmp_path / "no_sc.pt", move_off=8.0).move_off_steps == 80
+    with pytest.raises(BidError, match="no SC for move_off_sc"):
+        BIDAgent(tmp_path / "no_sc.pt", move_off=8.0, move_off_sc=True)
+    with pytest.raises(BidError, match="keep one"):
+        BIDAgent(shipped, move_off=8.0, move_off_sc=True, path_memory=2.0)
+    assert main(["evaluate", "--agent", "expert", "--move-off-sc", "--out", str(tmp_path / "x")]) == 2
+    assert "--move-off-sc is an option of --agent bid" in capsys.readouterr().err

@@ -915,6 +915,43 @@ def test_sc_still_reads_frame_t_alone_and_starts_from_a_moving_sc(recorded, tmp_
     assert "add --hazard-sc" in err and "\n" not in err
 
 
+def test_hazard_speedless_keeps_the_speed_from_the_hazard_head_alone(recorded, tmp_path, capsys):
+    """--hazard-speedless: the hazard head reads MPC's tokens merged without the speed token, so
+    what it says does not depend on the speed input, while the control head and the forecast
+    still do; --init from a run whose head read the speed keeps every weight, and
+    `--train-only hazard` moves the head alone. A model without a speed input is refused."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--speed-input", "--forecast", "0.5", "--hazard", "1"]
+    assert bid([*base, "--out", str(tmp_path / "sped")]) == 0
+    assert bid([*base, "--init", str(tmp_path / "sped" / "last.pt"), "--hazard-speedless", "--train-only", "hazard",
+                "--out", str(tmp_path / "speedless")]) == 0
+    start, blind = load_checkpoint(tmp_path / "sped" / "last.pt"), load_checkpoint(tmp_path / "speedless" / "last.pt")
+    assert blind["config"]["model"]["hazard_speedless"] and "fresh" not in blind.get("init", {})
+    assert all(torch.equal(v, blind["model"][k]) for k, v in start["model"].items()
+               if not k.startswith("hazard_head."))  # only the head may move
+    assert any(not torch.equal(v, blind["model"][k]) for k, v in start["model"].items() if k.startswith("hazard_head."))
+    model, _ = load_model(tmp_path / "speedless" / "last.pt", preset="tiny")
+    sped, _ = load_model(tmp_path / "sped" / "last.pt", preset="tiny")
+    model.eval(), sped.eval()
+    frame = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 3]]
+    with torch.no_grad():
+        out = [model(frame, prev, cmd, torch.tensor([v, v]), forecast=True, hazard=True) for v in (0.0, 8.0)]
+        sped_out = [sped(frame, prev, cmd, torch.tensor([v, v]), forecast=True, hazard=True) for v in (0.0, 8.0)]
+    assert torch.equal(out[0][2], out[1][2])  # the hazard head: the same at 0 and 8 m/s
+    assert not torch.equal(sped_out[0][2], sped_out[1][2])  # with the speed token, it differs
+    assert not torch.equal(out[0][0], out[1][0]) and not torch.equal(out[0][1], out[1][1])  # control, forecast
+    model.set_lesions({"MPC": "zero"})
+    with torch.no_grad():
+        lesioned = model(frame, prev, cmd, torch.tensor([0.0, 0.0]), hazard=True)[1]
+        assert torch.allclose(lesioned, model.hazard_head(torch.zeros(2, model.config.width)))
+    assert bid(["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--quiet", "--hazard", "1",
+                "--hazard-speedless", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--hazard-speedless keeps the speed input from the hazard head" in err and "\n" not in err
+
+
 def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(recorded, tmp_path, capsys):
     """--hazard-crossing: a second SC map says how near an occupied crossing on the path is, the
     hazard output's fourth column. Started from a run with SC, it starts as that SC with its
