@@ -887,6 +887,15 @@ def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(reco
     assert "add --hazard-sc" in err and "\n" not in err
 
 
+def tiny_runs_and_inputs(*runs):
+    """The `tiny` models of these run folders' last.pt in eval mode, and one batch of two random
+    frame pairs with their commands."""
+    models = [load_model(run / "last.pt", preset="tiny")[0].eval() for run in runs]
+    frame = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    prev = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
+    return models, (frame, prev, torch.eye(6)[[0, 3]])
+
+
 def test_sc_still_reads_frame_t_alone_and_starts_from_a_moving_sc(recorded, tmp_path, capsys):
     """--sc-still: SC reads frame t with its change since t−1 zeroed, so what it says does not
     depend on frame t−1 (the ego's own motion); --init from a run whose SC read the change keeps
@@ -899,12 +908,7 @@ def test_sc_still_reads_frame_t_alone_and_starts_from_a_moving_sc(recorded, tmp_
     assert still["config"]["model"]["sc_still"] and "fresh" not in still.get("init", {})
     assert all(torch.equal(v, still["model"][k]) for k, v in start["model"].items()
                if not k.startswith("hazard_sc."))  # only SC may move
-    model, _ = load_model(tmp_path / "still" / "last.pt", preset="tiny")
-    moving, _ = load_model(tmp_path / "sc" / "last.pt", preset="tiny")
-    model.eval(), moving.eval()
-    frame = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
-    prev = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
-    cmd = torch.eye(6)[[0, 3]]
+    (model, moving), (frame, prev, cmd) = tiny_runs_and_inputs(tmp_path / "still", tmp_path / "sc")
     with torch.no_grad():
         sc = [model.forward_features(frame, p, cmd)["SC"] for p in (prev, frame)]
         sc_moving = [moving.forward_features(frame, p, cmd)["SC"] for p in (prev, frame)]
@@ -930,12 +934,7 @@ def test_hazard_speedless_keeps_the_speed_from_the_hazard_head_alone(recorded, t
     assert all(torch.equal(v, blind["model"][k]) for k, v in start["model"].items()
                if not k.startswith("hazard_head."))  # only the head may move
     assert any(not torch.equal(v, blind["model"][k]) for k, v in start["model"].items() if k.startswith("hazard_head."))
-    model, _ = load_model(tmp_path / "speedless" / "last.pt", preset="tiny")
-    sped, _ = load_model(tmp_path / "sped" / "last.pt", preset="tiny")
-    model.eval(), sped.eval()
-    frame = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
-    prev = torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8)
-    cmd = torch.eye(6)[[0, 3]]
+    (model, sped), (frame, prev, cmd) = tiny_runs_and_inputs(tmp_path / "speedless", tmp_path / "sped")
     with torch.no_grad():
         out = [model(frame, prev, cmd, torch.tensor([v, v]), forecast=True, hazard=True) for v in (0.0, 8.0)]
         sped_out = [sped(frame, prev, cmd, torch.tensor([v, v]), forecast=True, hazard=True) for v in (0.0, 8.0)]
