@@ -196,7 +196,12 @@ class BIDAgent:
     CLEAR_M (`clear_to_move_off`; a light turning green starts the count), accelerate at
     least at MOVE_OFF_ACCEL until START_MPS or until the head sees something (0: standing and
     moving off are the control head's call). It answers a control head that stands where
-    nothing is in the way (docs/experiments.md).
+    nothing is in the way (docs/experiments.md). With a move-off head (model.move_off_head,
+    `bid train --move-off-head`) the pedestrian and the vehicle it waits for are that head's
+    (beside SC's), the red light still the first head's: the move-off head reads no speed, so
+    standing it does not see a vehicle because the ego stands; reading its red light too, the
+    ego moved off through red lights it stood at (docs/experiments.md, "Two hazard heads"). With
+    path_memory, move-off reads what the memory keeps, as the brakes do.
     move_off_to: m/s; with move_off, the speed it moves the ego off to (START_MPS when None). A
     control head that waits where the expert would go brakes a moved-off ego back to standing
     from START_MPS; moved off to 4 m/s, crowded routes finish more often, with more contacts
@@ -372,8 +377,9 @@ class BIDAgent:
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0 or self.crossing_brake > 0)
+        second = self.move_off_steps > 0 and self.config.model.move_off_head  # move-off's own head
         out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard,
-                         hazard_apart=self.move_off_sc)
+                         hazard_apart=self.move_off_sc, move_off=second)
         control, *extra = out if isinstance(out, tuple) else (out,)
         accel, v = float(control[0, 1]), float(obs.speed_mps)
         if by_forecast:
@@ -385,10 +391,13 @@ class BIDAgent:
                 accel = min(accel, -self.forecast_brake * need)
         if by_hazard:
             hazard = extra.pop(0)
-            near = clear_near = tuple(float(x) for x in
-                                      (self.model.merge_hazard(hazard) if self.move_off_sc else hazard)[0])
+            merged = self.model.merge_hazard if self.move_off_sc else (lambda h: h)
+            near = clear_near = tuple(float(x) for x in merged(hazard)[0])
+            k = len(PATH_KINDS)
+            if second:  # the move-off head's pedestrian and vehicle, the first head's red light
+                clear_near = (*(float(x) for x in merged(extra.pop(0))[0, :k]), *near[k:])
             if self.move_off_sc:  # SC's pedestrian and vehicle, the head's red light
-                clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *near[len(PATH_KINDS):])
+                clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *near[k:])
             if self.memory is not None:
                 near = clear_near = self.memory.update(near, v)
             if self.move_off_steps:

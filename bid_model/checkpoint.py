@@ -94,11 +94,12 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
 # without the head, the head's weight prefix, its loss weight in the train config).
 # Checkpoints that differ only in them average into one without the heads they do not all have.
 AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
-             "hazard": (False, "hazard_", "lambda_hazard")}  # hazard_head., hazard_sc., hazard_crossing.
+             "hazard": (False, "hazard_", "lambda_hazard")}  # hazard_head., hazard_sc., hazard_crossing., hazard_move_off.
 # Fields that shape a head beside its own (→ their value without it): heads alike agree on them too.
 HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False, "hazard_attend": False,
                                                    "hazard_sc": False, "sc_presence": False, "sc_still": False,
-                                                   "hazard_crossing": False, "hazard_speedless": False}}
+                                                   "hazard_crossing": False, "hazard_speedless": False,
+                                                   "move_off_head": False}}
 
 
 def average_checkpoints(paths: list[str | Path], out: str | Path,

@@ -91,6 +91,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard and a speed input, the hazard head reads MPC's tokens merged without "
                         "the speed token (standing, the head with it read a car ahead in an empty street); "
                         "--init from a checkpoint without it keeps every weight")
+    p.add_argument("--move-off-head", action="store_true", default=None,
+                   help="with --hazard and a speed input, a second hazard head, fitted alike, that reads "
+                        "MPC without the speed token; `bid evaluate --move-off` waits for what it sees, the "
+                        "brakes for the first head; --init from a checkpoint without it starts it as that "
+                        "checkpoint's hazard head")
     p.add_argument("--hazard-crossing", action="store_true", default=None,
                    help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
                         "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")

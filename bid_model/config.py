@@ -27,7 +27,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
 INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc",
-                               "sc_presence", "hazard_crossing"}
+                               "sc_presence", "hazard_crossing", "move_off_head"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -108,6 +108,12 @@ class ModelConfig:
     # waiting (docs/experiments.md, "The hazard head reads the speed"). The forecast and the
     # control head still read the speed.
     hazard_speedless: bool = False
+    # A second hazard head, alike, reading MPC's tokens merged without the speed token, which
+    # move-off's clear check reads (BIDAgent); the brakes keep the first head, which reads the
+    # speed: the speedless head saw 71.5 % of the red lights a moving ego met within 10 m where
+    # the first saw 99.2 %, and standing it no longer reads "standing, so a vehicle ahead"
+    # (docs/experiments.md, "Two hazard heads").
+    move_off_head: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -129,6 +135,10 @@ class ModelConfig:
             raise ValueError("hazard_crossing is the fourth hazard output, beside SC: it needs hazard_sc and hazard_light")
         if self.hazard_speedless and not (self.hazard and self.speed_input):
             raise ValueError("hazard_speedless keeps the speed input from the hazard head: it needs hazard and speed_input")
+        if self.move_off_head and not (self.hazard and self.speed_input):
+            raise ValueError("move_off_head is a hazard head without the speed input: it needs hazard and speed_input")
+        if self.move_off_head and self.hazard_speedless:
+            raise ValueError("with hazard_speedless the hazard head already reads no speed: drop move_off_head")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 

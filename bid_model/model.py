@@ -147,24 +147,30 @@ class BID(nn.Module):
         # Auxiliary hazard head: (pedestrian, vehicle[, red light]) nearness in the path, 1 −
         # distance / HAZARD_AHEAD_M (0: none within it); not an area (no lesions).
         # With config.hazard_attend it attends over V2's and V4's grids as well (AttendingHazardHead).
-        self.hazard_head: nn.Module | None = None
-        if c.hazard and c.hazard_attend:
-            grids = {name: (w[i], *self.grid_hw()[name]) for i, name in ((1, "V2"), (2, "V4"))}
-            self.hazard_head = AttendingHazardHead(grids, d, c.cpc_hidden[1], 2 + c.hazard_light)
-        elif c.hazard:
-            self.hazard_head = nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
-                                             nn.Linear(c.cpc_hidden[1], 2 + c.hazard_light))
+        self.hazard_head = self._new_hazard_head() if c.hazard else None
         # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
         self.hazard_sc = (SC(c.frame_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
                           if c.hazard_sc else None)
         # With config.hazard_crossing a second SC map of its own, one kind: how near the next crossing
         # on the path with a pedestrian on it is (the fourth hazard output; warm_start_crossing).
         self.hazard_crossing = SC(c.frame_hw, c.n_commands, 1) if c.hazard_crossing else None
+        # With config.move_off_head a second hazard head, alike, reading MPC without the speed token.
+        self.hazard_move_off = self._new_hazard_head() if c.move_off_head else None
 
         for name, shape in self.output_shapes().items():
             self.register_buffer(f"mean_{name}", torch.zeros(shape), persistent=True)
         self.register_buffer("mean_batches", torch.zeros((), dtype=torch.long))
         self.lesions: dict[str, str] = {}
+
+    def _new_hazard_head(self) -> nn.Module:
+        """A hazard head: MPC's mean token (with config.hazard_attend all its tokens and V2's
+        and V4's grids, AttendingHazardHead) → (pedestrian, vehicle[, red light]) nearness."""
+        c, d = self.config, self.config.width
+        if c.hazard_attend:
+            grids = {name: (c.widths[i], *self.grid_hw()[name]) for i, name in ((1, "V2"), (2, "V4"))}
+            return AttendingHazardHead(grids, d, c.cpc_hidden[1], 2 + c.hazard_light)
+        return nn.Sequential(nn.Linear(d, c.cpc_hidden[1]), nn.ReLU(inplace=True),
+                             nn.Linear(c.cpc_hidden[1], 2 + c.hazard_light))
 
     # --- shapes ---------------------------------------------------------------------------
 
@@ -272,7 +278,7 @@ class BID(nn.Module):
             speed = speed_mps.reshape(b, 1, 1).float() / SPEED_SCALE_MPS
             streams["speed"] = self.speed_token(speed)
         feats["MPC"] = self._area("MPC", streams)
-        if c.hazard_speedless:  # for the hazard head alone
+        if c.hazard_speedless or c.move_off_head:  # for a hazard head alone
             feats["MPC_speedless"] = self._speedless_mpc({k: v for k, v in streams.items() if k != "speed"})
         if self.hazard_sc is not None:
             seen = self._normalise(frame_t)
@@ -307,7 +313,8 @@ class BID(nn.Module):
             raise BidError("this model has no speed forecast; train it with --forecast")
         return self.forecast_head(features["MPC"].mean(dim=1)) * SPEED_SCALE_MPS
 
-    def forward_hazard(self, features: dict[str, torch.Tensor], apart: bool = False) -> torch.Tensor:
+    def forward_hazard(self, features: dict[str, torch.Tensor], apart: bool = False,
+                       move_off: bool = False) -> torch.Tensor:
         """(batch, hazard_kinds()): nearness of the nearest (pedestrian, vehicle) in the path and,
         with config.hazard_light, of a red light's stop line, from MPC's tokens (and with
         config.hazard_attend from V2's and V4's grids too; with config.hazard_sc the
@@ -315,14 +322,18 @@ class BID(nn.Module):
         config.sc_presence only where its logit says one is in the path; with `apart` the head's
         outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
         then its logits), so that training fits each alone); with config.hazard_crossing the last
-        column is how near an occupied crossing is (its own SC map's), both ways."""
+        column is how near an occupied crossing is (its own SC map's), both ways. `move_off`: the
+        same from the second head (config.move_off_head), which reads MPC without the speed."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
-        mpc = features["MPC_speedless"] if self.config.hazard_speedless else features["MPC"]
+        if move_off and self.hazard_move_off is None:
+            raise BidError("this model has no move-off head; train one with --move-off-head")
+        head = self.hazard_move_off if move_off else self.hazard_head
+        mpc = features["MPC_speedless"] if self.config.hazard_speedless or move_off else features["MPC"]
         if self.config.hazard_attend:
-            near = self.hazard_head({**features, "MPC": mpc})
+            near = head({**features, "MPC": mpc})
         else:
-            near = self.hazard_head(mpc.mean(dim=1))
+            near = head(mpc.mean(dim=1))
         if self.hazard_sc is not None:  # what either sees in the path
             crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
             near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
@@ -351,23 +362,24 @@ class BID(nn.Module):
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,
                 forecast: bool = False, hazard: bool = False,
-                hazard_apart: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
+                hazard_apart: bool = False, move_off: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
         """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6);
-        with `forecast` and/or `hazard`, ((steer, accel), then the forecast speeds (B,
-        len(forecast_s)) in m/s, then the hazard nearness (B, hazard_kinds()), those asked for, in that order;
-        `hazard_apart`: forward_hazard(apart=True))."""
+        with `forecast`, `hazard` and/or `move_off`, ((steer, accel), then the forecast speeds (B,
+        len(forecast_s)) in m/s, then the hazard nearness (B, hazard_kinds()), then the move-off
+        head's, those asked for, in that order; `hazard_apart`: forward_hazard(apart=True), both heads)."""
         feats = self.forward_features(frame_t, frame_prev, command_onehot, speed_mps)
         control = self.forward_head(feats)
         extra = (([self.forward_forecast(feats)] if forecast else [])
-                 + ([self.forward_hazard(feats, apart=hazard_apart)] if hazard else []))
+                 + ([self.forward_hazard(feats, apart=hazard_apart)] if hazard else [])
+                 + ([self.forward_hazard(feats, apart=hazard_apart, move_off=True)] if move_off else []))
         return (control, *extra) if extra else control
 
     def parts(self) -> dict[str, nn.Module]:
         """Every area by name, then the optional extra pathways this model has: dorsal_tokens,
-        speed, forecast, hazard, SC, crossing (the names of parameter_counts and `bid train --train-only`)."""
+        speed, forecast, hazard, SC, crossing, move_off (the names of parameter_counts and `bid train --train-only`)."""
         extra = (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
                  ("forecast", self.forecast_head), ("hazard", self.hazard_head), ("SC", self.hazard_sc),
-                 ("crossing", self.hazard_crossing))
+                 ("crossing", self.hazard_crossing), ("move_off", self.hazard_move_off))
         return {**self.areas, **{name: module for name, module in extra if module is not None}}
 
     def parameter_counts(self) -> dict[str, int]:

@@ -507,6 +507,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
     base = net.module if isinstance(net, nn.parallel.DistributedDataParallel) else net
     set_train_mode(base, tc)
     apart = base.config.hazard_sc and tc.lambda_hazard > 0  # the head and SC fitted each alone
+    move_off = base.config.move_off_head and tc.lambda_hazard > 0  # the second head fitted alike
+    kwargs = {**({"hazard_apart": True} if apart else {}), **({"move_off": True} if move_off else {})}
     loss_sum = torch.zeros((), dtype=torch.float64, device=device)
     samples, t0 = 0, time.perf_counter()
     bar = tqdm(loader, desc=bar_desc, unit="batch", disable=bar_desc is None, leave=False,
@@ -523,9 +525,12 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             *flipped, target = mirror(*inputs[:3], target, tc.mirror)
             inputs = (*flipped, inputs[3])
         with _autocast(device):
-            pred, ahead, hazard = _split_outputs(
-                net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0,
-                    **({"hazard_apart": True} if apart else {})), tc)
+            out = net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0, **kwargs)
+        second = None
+        if move_off:  # the last output (control and the first head's come first)
+            *rest, second = out
+            out = tuple(rest)
+        pred, ahead, hazard = _split_outputs(out, tc)
         loss = l1_loss(pred, target, tc)
         if ahead is not None:
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
@@ -535,6 +540,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
             weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps)
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
+            if second is not None:
+                loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near[:, :own], *weights)
             if apart:
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
                 sc_end = own + k * (1 + base.config.sc_presence)
@@ -560,11 +567,17 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
     """Loss and MAE on `loader`, the best constant's MAE, and every prediction (for plots)."""
     model.eval()
     preds, targets, episodes, steps, forecast_err, hazard_pred, hazard_true = [], [], [], [], [], [], []
+    move_off = model.config.move_off_head and tc.lambda_hazard > 0
+    second_pred = []
     for batch in loader:
         inputs, target = batch_inputs(batch, device)
         with _autocast(device):
-            pred, ahead, hazard = _split_outputs(
-                model(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0), tc)
+            out = model(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0,
+                        **({"move_off": True} if move_off else {}))
+            if move_off:
+                *out, second = out
+                second_pred.append(second.float().cpu())
+            pred, ahead, hazard = _split_outputs(tuple(out) if move_off else out, tc)
             if ahead is not None:
                 forecast_err.append((ahead.float().cpu() - batch["future_speed"]).abs())
             if hazard is not None:
@@ -588,7 +601,13 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
         near_pred, near_true = torch.cat(hazard_pred), torch.cat(hazard_true)
         hazard_m = ((near_pred - near_true).abs().mean(0) * HAZARD_AHEAD_M).tolist()
         detection = hazard_detection(near_pred, near_true)
-    return {"val_loss": float(tc.lambda_steer * mae[0] + tc.lambda_accel * mae[1]),
+    # The move-off head's alike (in the log only: it is fitted beside, or after, the first).
+    second = {}
+    if second_pred:
+        near_pred = torch.cat(second_pred)
+        second = {"mae_m": ((near_pred - near_true).abs().mean(0) * HAZARD_AHEAD_M).tolist(),
+                  "detection": hazard_detection(near_pred, near_true)}
+    return {"val_move_off": second, "val_loss": float(tc.lambda_steer * mae[0] + tc.lambda_accel * mae[1]),
             "val_mae_steer": float(mae[0]), "val_mae_accel": float(mae[1]),
             "val_mae_forecast_mps": forecast, "val_mae_hazard_m": hazard_m, "val_hazard_detection": detection,
             "const_mae_steer": float(const[0]), "const_mae_accel": float(const[1]),
@@ -635,6 +654,21 @@ def warm_start_crossing(model: BID, state: dict[str, torch.Tensor], fresh: list[
             theirs = theirs[:tensor.shape[0]]
         tensor.copy_(theirs)
         started.append(f"hazard_crossing.{name}")
+    return sorted(set(fresh) - set(started))
+
+
+def warm_start_move_off(model: BID, state: dict[str, torch.Tensor], fresh: list[str]) -> list[str]:
+    """A move-off head (model.hazard_move_off) that `state` lacks starts as `state`'s hazard
+    head: it learns the same nearness, only without the speed token. Returns `fresh` less the
+    tensors so started."""
+    if model.hazard_move_off is None:
+        return fresh
+    started = []
+    for name, tensor in model.hazard_move_off.state_dict().items():
+        theirs = state.get(f"hazard_head.{name}")
+        if f"hazard_move_off.{name}" in fresh and theirs is not None and theirs.shape == tensor.shape:
+            tensor.copy_(theirs)
+            started.append(f"hazard_move_off.{name}")
     return sorted(set(fresh) - set(started))
 
 
@@ -752,7 +786,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if "frame_hw" in diff:
             state = resize_grid_tokens(state, tuple(theirs.frame_hw), model)
         fresh = load_shared_weights(model, state)
-        fresh = warm_start_crossing(model, state, fresh)
+        fresh = warm_start_move_off(model, state, warm_start_crossing(model, state, fresh))
     elif start_from is not None:
         model.load_state_dict(start_from["model"])
 
@@ -842,9 +876,14 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if val and val["val_mae_forecast_mps"]:
             log.info("speed forecast MAE at %s s: %s m/s", "/".join(f"{t:g}" for t in config.model.forecast_s),
                      "/".join(f"{e:.2f}" for e in val["val_mae_forecast_mps"]))
-        if val and val["val_mae_hazard_m"]:
-            log.info("hazard distance MAE, pedestrian/vehicle: %s m", "/".join(f"{e:.2f}" for e in val["val_mae_hazard_m"]))
-            for kind, d in val["val_hazard_detection"].items():
+        heads = (("hazard", val["val_mae_hazard_m"], val["val_hazard_detection"]),
+                 ("move-off head", val["val_move_off"].get("mae_m"), val["val_move_off"].get("detection", {}))
+                 ) if val else ()
+        for head, mae_m, detection in heads:
+            if not mae_m:
+                continue
+            log.info("%s distance MAE, pedestrian/vehicle: %s m", head, "/".join(f"{e:.2f}" for e in mae_m))
+            for kind, d in detection.items():
                 log.info("%s in the path: seen in %s of the frames with one within %g m, in %s of those "
                          "with none; AUC %s", kind, _percent(d["seen_near"]), NEAR_M, _percent(d["seen_none"]),
                          "-" if d["auc"] is None else f"{d['auc']:.3f}")
@@ -881,7 +920,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
-             "--hazard-speedless": args.hazard_speedless,
+             "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
@@ -1002,6 +1041,13 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
             raise BidError("--hazard-speedless keeps the speed input from the hazard head: add --hazard WEIGHT "
                            "(the preset's model must take the speed)")
         model = dataclasses.replace(model, hazard_speedless=True)
+    if args.move_off_head:
+        if not (model.hazard and model.speed_input):
+            raise BidError("--move-off-head is a hazard head without the speed input: add --hazard WEIGHT "
+                           "(the preset's model must take the speed)")
+        if model.hazard_speedless:
+            raise BidError("with --hazard-speedless the hazard head already reads no speed: keep one")
+        model = dataclasses.replace(model, move_off_head=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

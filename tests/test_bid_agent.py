@@ -675,3 +675,68 @@ def test_move_off_sc_waits_for_what_sc_sees_not_the_head(tmp_path, capsys):
         BIDAgent(shipped, move_off=8.0, move_off_sc=True, path_memory=2.0)
     assert main(["evaluate", "--agent", "expert", "--move-off-sc", "--out", str(tmp_path / "x")]) == 2
     assert "--move-off-sc is an option of --agent bid" in capsys.readouterr().err
+
+
+def test_a_move_off_head_decides_moving_off_and_the_first_head_braking(tmp_path):
+    """A checkpoint with a move-off head (`bid train --move-off-head`): a standing ego moves off
+    while only the first hazard head reads a vehicle near, and waits while the move-off head
+    reads one, or while the first head reads a red light near; moving, the brakes read the first
+    head alone. The head reads MPC merged without the speed token, so the speed does not change
+    what it says."""
+    import numpy as np
+    import torch
+
+    from bid_model.agent import MOVE_OFF_ACCEL, vehicle_brake
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    two = load_checkpoint(shipped)  # the shipped network with its head copied as the move-off head
+    two["config"]["model"]["move_off_head"] = True
+    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
+                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
+    save_checkpoint(tmp_path / "two.pt", two)
+    agent = BIDAgent(tmp_path / "two.pt", move_off=0.3, vehicle_brake=1.0)
+    frame = np.random.default_rng(4).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+
+    def see(first: float, move_off: float, accel: float, light: tuple[float, float] = (0.0, 0.0)) -> None:
+        with torch.no_grad():
+            agent.model.areas["CPC"].head[-1].weight.zero_()
+            agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, accel]))
+            agent.model.hazard_sc.priority[-1].weight.zero_()  # SC sees nothing
+            agent.model.hazard_sc.priority[-1].bias.zero_()
+            for head, vehicle, red in ((agent.model.hazard_head, first, light[0]),
+                                       (agent.model.hazard_move_off, move_off, light[1])):
+                head[-1].weight.zero_()
+                head[-1].bias.copy_(torch.tensor([0.0, vehicle, red]))
+        agent.reset(None)
+
+    still = Observation(frame, frame, 4, 0.0, None)
+    see(first=0.9, move_off=0.0, accel=-100.0)
+    assert [agent.act(still).accel for _ in range(3)] == pytest.approx([-1.0, -1.0, MOVE_OFF_ACCEL], abs=1e-5)
+    see(first=0.0, move_off=0.9, accel=-100.0)
+    assert [agent.act(still).accel for _ in range(3)] == pytest.approx([-1.0] * 3, abs=1e-5)
+    see(first=0.0, move_off=0.0, accel=-100.0, light=(0.9, 0.0))  # the red light is the first head's
+    assert [agent.act(still).accel for _ in range(3)] == pytest.approx([-1.0] * 3, abs=1e-5)
+    see(first=0.0, move_off=0.0, accel=-100.0, light=(0.0, 0.9))
+    assert [agent.act(still).accel for _ in range(3)] == pytest.approx([-1.0, -1.0, MOVE_OFF_ACCEL], abs=1e-5)
+    moving = Observation(frame, frame, 4, 6.0, None)
+    see(first=0.7, move_off=0.0, accel=100.0)
+    assert agent.act(moving).accel == pytest.approx(-vehicle_brake(0.7, 6.0), abs=1e-5)
+    see(first=0.0, move_off=0.7, accel=100.0)
+    assert agent.act(moving).accel == pytest.approx(1.0, abs=1e-5)
+    # The move-off head's output is its own, read from MPC without the speed; SC merged in.
+    model = BIDAgent(tmp_path / "two.pt").model
+    outs = []
+    for speed_mps in (0.0, 7.0):
+        frame_t, prev, cmd, speed = one_input(agent.hw, seed=2, command=2, speed_mps=speed_mps)
+        with torch.inference_mode():
+            feats = model.forward_features(frame_t, prev, cmd, speed)
+            _, first, second = model(frame_t, prev, cmd, speed, hazard=True, move_off=True)
+            assert torch.equal(first, model.forward_hazard(feats))
+            own = model.hazard_move_off(feats["MPC_speedless"].mean(1))
+            assert torch.allclose(second, model.merge_hazard(torch.cat([own, feats["SC"]], dim=1)))
+        outs.append(second)
+    assert torch.allclose(outs[0], outs[1], atol=1e-6)
+    with pytest.raises(BidError, match="no move-off head"):
+        BIDAgent(shipped).model(frame_t, prev, cmd, speed, hazard=True, move_off=True)

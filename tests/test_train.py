@@ -17,7 +17,7 @@ import torch
 
 from bid_model.augment import photometric
 from bid_model.checkpoint import average_checkpoints, load_checkpoint, load_model, save_checkpoint
-from bid_model.config import RunConfig, tiny, with_variant
+from bid_model.config import RunConfig, model_config_from_dict, tiny, with_variant
 from bid_model.data import synthetic_split
 from bid_model.model import BID
 from bid_model.recordings import RecordingDataset
@@ -29,6 +29,7 @@ from bid_model.train import (
     load_shared_weights,
     train,
     warm_start_crossing,
+    warm_start_move_off,
 )
 from bid_sim.cli import main as bid
 from bid_sim.errors import BidError
@@ -949,6 +950,35 @@ def test_hazard_speedless_keeps_the_speed_from_the_hazard_head_alone(recorded, t
                 "--hazard-speedless", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert "--hazard-speedless keeps the speed input from the hazard head" in err and "\n" not in err
+
+
+def test_a_move_off_head_starts_as_the_hazard_head_and_fits_as_a_speedless_one(recorded, tmp_path, capsys, caplog):
+    """--move-off-head: a second hazard head reading MPC without the speed token. --init from a
+    run without it starts it as that run's hazard head, `--train-only move_off` moves it alone,
+    and it then learns exactly what --hazard-speedless teaches the first head from that start
+    (the same targets, the same tokens). It is refused beside --hazard-speedless."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--speed-input", "--forecast", "0.5", "--hazard", "1"]
+    assert bid([*base, "--out", str(tmp_path / "sped")]) == 0
+    start = tmp_path / "sped" / "last.pt"
+    caplog.set_level("INFO", logger="bid_model.train")
+    assert bid([*base, "--init", str(start), "--move-off-head", "--train-only", "move_off",
+                "--out", str(tmp_path / "two")]) == 0
+    assert any(r.getMessage().startswith("move-off head distance MAE") for r in caplog.records)  # validated
+    assert bid([*base, "--init", str(start), "--hazard-speedless", "--train-only", "hazard",
+                "--out", str(tmp_path / "speedless")]) == 0
+    sped, two, blind = (load_checkpoint(tmp_path / run / "last.pt") for run in ("sped", "two", "speedless"))
+    assert two["config"]["model"]["move_off_head"] and "fresh" not in two.get("init", {})
+    heads = [k for k in sped["model"] if k.startswith("hazard_head.")]
+    model = BID(model_config_from_dict(two["config"]["model"]))
+    assert warm_start_move_off(model, sped["model"], load_shared_weights(model, sped["model"])) == []
+    assert all(torch.equal(model.state_dict()["hazard_move_off." + k[12:]], sped["model"][k]) for k in heads)
+    assert all(torch.equal(v, two["model"][k]) for k, v in sped["model"].items())  # the first head too
+    assert all(torch.equal(two["model"]["hazard_move_off." + k[12:]], blind["model"][k]) for k in heads)
+    assert not all(torch.equal(two["model"]["hazard_move_off." + k[12:]], sped["model"][k]) for k in heads)
+    assert bid([*base, "--move-off-head", "--hazard-speedless", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "keep one" in err and "\n" not in err
 
 
 def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(recorded, tmp_path, capsys):
