@@ -108,11 +108,11 @@ class ModelConfig:
     # waiting (docs/experiments.md, "The hazard head reads the speed"). The forecast and the
     # control head still read the speed.
     hazard_speedless: bool = False
-    # A second hazard head, alike, reading MPC's tokens merged without the speed token, which
-    # move-off's clear check reads (BIDAgent); the brakes keep the first head, which reads the
-    # speed: the speedless head saw 71.5 % of the red lights a moving ego met within 10 m where
-    # the first saw 99.2 %, and standing it no longer reads "standing, so a vehicle ahead"
-    # (docs/experiments.md, "Two hazard heads").
+    # A second hazard head, alike, reading MPC's tokens merged without the speed token, whose
+    # pedestrian and vehicle move-off's clear check reads (BIDAgent); the brakes and move-off's
+    # red light keep the first head, which reads the speed: the speedless head saw 71.5 % of the
+    # red lights a moving ego met within 10 m where the first saw 99.2 %, and standing it no
+    # longer reads "standing, so a vehicle ahead" (docs/experiments.md, "Two hazard heads").
     move_off_head: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
