@@ -180,6 +180,9 @@ class TrainConfig:
     hazard_turn_weight: float = 1.0
     # Further weight of a frame with a pedestrian in the path while the ego moves (train.hazard_loss).
     hazard_moving_weight: float = 1.0
+    # Further weight of the red-light entry (none there) of a frame where the ego stands at a green
+    # light's stop line (hazards.GREEN_LINE_M; train.hazard_weights).
+    hazard_green_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (losses.l1_loss)

@@ -46,7 +46,7 @@ from shapely.geometry import Polygon
 from bid_model.config import PATH_KINDS
 from bid_sim.errors import BidError
 from bid_sim.recording import read_facts, read_snapshots
-from bid_sim.snapshot import RED, YELLOW, Actors, Snapshot
+from bid_sim.snapshot import GREEN, RED, YELLOW, Actors, Snapshot
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,9 @@ _VERSION = "hazard-v1"  # part of the cache key: bump when the definition change
 ONTO_S = 1.0  # a pedestrian walking onto a crossing within this long is on it already
 WALKING_MPS = 0.3  # slower is standing
 MOVING_MPS = 0.3  # the ego moves at this speed or faster (train --hazard-moving-weight, bid probe)
+# A standing ego's front this near a green light's stop line, or past it, stands "at a green
+# line" (train --hazard-green-weight, bid probe): the expert stands 0.5-1.5 m before a red one.
+GREEN_LINE_M = 3.0
 AWAY_M = 0.5  # beyond the corridor by this, a pedestrian walking away from the path is no one's
 _CROSSING_VERSION = "crossing-v2"
 
@@ -108,6 +111,17 @@ def light_distance(state: dict) -> float:
     if state.get("next_light_state") not in (RED, YELLOW) or dist is None:
         return HAZARD_AHEAD_M
     return float(np.clip(dist, 0.0, HAZARD_AHEAD_M))
+
+
+def green_distance(state: dict) -> float:
+    """Metres from the ego's front to the stop line of the green light on its route, from a
+    recorded /ego/state (negative: the front is past it; HAZARD_AHEAD_M: none, or farther). Not a
+    target: where the ego stands at a green line the red-light target is none, and the light
+    output read red there (`bid train --hazard-green-weight`, docs/experiments.md)."""
+    dist = state.get("next_light_dist_m")
+    if state.get("next_light_state") != GREEN or dist is None:
+        return HAZARD_AHEAD_M
+    return float(min(dist, HAZARD_AHEAD_M))
 
 
 def _trajectory(snaps: list[Snapshot]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

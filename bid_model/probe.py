@@ -23,7 +23,7 @@ import torch
 from bid_model.checkpoint import load_model
 from bid_model.config import KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
+from bid_model.hazards import GREEN_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
 from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection
 from bid_sim.errors import BidError
@@ -49,14 +49,27 @@ def _group(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]
             for k, kind in enumerate(found)}
 
 
+def _stop_line(target: torch.Tensor, speed_mps: np.ndarray, green_m: np.ndarray) -> np.ndarray:
+    """Per frame: "standing at a red line" (a red or amber light's stop line GREEN_LINE_M or
+    nearer), "standing at a green line" (hazards.green_distance), else "elsewhere". The expert
+    stands at lines almost only at red; a light output that learnt the place reads the green
+    ones red too."""
+    standing = speed_mps < MOVING_MPS
+    light = KINDS.index("red_light")
+    red = (target[:, light] >= 1.0 - GREEN_LINE_M / HAZARD_AHEAD_M).numpy() if target.shape[1] > light else False
+    return np.where(standing & red, "standing at a red line",
+                    np.where(standing & (green_m <= GREEN_LINE_M), "standing at a green line", "elsewhere"))
+
+
 def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,
                   batch_size: int = 64, threads: int | None = None) -> dict[str, Any]:
     """The hazard outputs of `checkpoint` on every `every`-th frame of the recordings in
     `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
     read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
     HAZARD_AHEAD_M, the share read as one all the same), `auc`, and the frame counts; for all
-    frames ("all") and grouped by command, weather, density and "ego" (standing, or moving at
-    MOVING_MPS or faster)."""
+    frames ("all") and grouped by command, weather, density, "ego" (standing, or moving at
+    MOVING_MPS or faster) and "stop line" (standing at a red line, at a green one, elsewhere:
+    `_stop_line`)."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     if threads:
@@ -66,7 +79,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         raise BidError(f"{checkpoint} has no hazard head to probe; train one with --hazard")
     data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing)
     rows = np.arange(0, len(data), every)
-    preds, targets, commands, episodes, speeds = [], [], [], [], []
+    preds, targets, commands, episodes, speeds, greens = [], [], [], [], [], []
     with torch.inference_mode():
         for start in range(0, len(rows), batch_size):
             items = [data[int(i)] for i in rows[start:start + batch_size]]
@@ -80,12 +93,14 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             commands += command
             episodes += [it["episode"] for it in items]
             speeds += [float(it["speed_mps"]) for it in items]
+            greens += [float(it.get("green_m", HAZARD_AHEAD_M)) for it in items]
     pred, target = torch.cat(preds), torch.cat(targets)
     groups: dict[str, np.ndarray] = {
         "command": np.array([COMMAND_NAMES[c] for c in commands]),
         "weather": np.array([facts[e].get("weather", "?") for e in episodes]),
         "density": np.array([facts[e].get("density", "?") for e in episodes]),
         "ego": np.where(np.array(speeds) >= MOVING_MPS, "moving", "standing"),
+        "stop line": _stop_line(target, np.array(speeds), np.array(greens)),
     }
     by: dict[str, dict[str, Any]] = {}
     for name, labels in groups.items():

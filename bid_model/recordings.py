@@ -28,7 +28,13 @@ import torch
 from torch.utils.data import Dataset
 
 from bid_model.data import resize_frame, split_episodes
-from bid_model.hazards import HAZARD_AHEAD_M, index_crossings, index_hazards, light_distance
+from bid_model.hazards import (
+    HAZARD_AHEAD_M,
+    green_distance,
+    index_crossings,
+    index_hazards,
+    light_distance,
+)
 from bid_sim.errors import BidError
 from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
 from bid_sim.snapshot import RED, YELLOW
@@ -55,6 +61,8 @@ class _Index:
     light_stop: np.ndarray | None = None
     # (N,) float32: metres to the stop line of a red or amber light on the route (hazards.light_distance)
     light_dist: np.ndarray | None = None
+    # (N,) float32: metres to the stop line of a green light on the route (hazards.green_distance)
+    green_dist: np.ndarray | None = None
 
 
 def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
@@ -69,7 +77,7 @@ def find_recordings(folder: str | os.PathLike) -> tuple[list[Path], list[Path]]:
 
 def _index(files: list[Path], keep_jpeg: bool) -> _Index:
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("episode", "step", "prev", "command", "speed", "steer", "accel",
-                                                         "light_stop", "light_dist")}
+                                                         "light_stop", "light_dist", "green_dist")}
     facts, jpeg = [], [] if keep_jpeg else None
     n = 0
     for e, f in enumerate(files):
@@ -89,6 +97,7 @@ def _index(files: list[Path], keep_jpeg: bool) -> _Index:
         cols["accel"].append(ep.accel)
         cols["light_stop"].append(np.array([light_stops(st) for st in ep.states], dtype=bool))
         cols["light_dist"].append(np.array([light_distance(st) for st in ep.states], dtype=np.float32))
+        cols["green_dist"].append(np.array([green_distance(st) for st in ep.states], dtype=np.float32))
         if jpeg is not None:
             jpeg.extend(ep.jpeg)
         n += m
@@ -96,7 +105,8 @@ def _index(files: list[Path], keep_jpeg: bool) -> _Index:
     return _Index(files, facts, arr["episode"].astype(np.int64), arr["step"].astype(np.int64),
                   arr["prev"].astype(np.int64), arr["command"].astype(np.int64), arr["speed"].astype(np.float32),
                   arr["steer"].astype(np.float32), arr["accel"].astype(np.float32), jpeg,
-                  arr["light_stop"].astype(bool), arr["light_dist"].astype(np.float32))
+                  arr["light_stop"].astype(bool), arr["light_dist"].astype(np.float32),
+                  arr["green_dist"].astype(np.float32))
 
 
 def light_stops(state: dict) -> bool:
@@ -213,6 +223,8 @@ class RecordingDataset(Dataset):
             sample["future_speed"] = torch.from_numpy(self.forecast[j])
         if self.hazard is not None:
             sample["hazard"] = torch.from_numpy(self.hazard[j])
+            if ix.green_dist is not None:  # not a target: for --hazard-green-weight and `bid probe`
+                sample["green_m"] = float(ix.green_dist[j])
         return sample
 
     def __getstate__(self) -> dict:

@@ -61,7 +61,7 @@ from bid_model.config import (
     with_variant,
 )
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
+from bid_model.hazards import GREEN_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
 from bid_model.losses import l1_loss
 from bid_model.model import (
     BID,
@@ -132,12 +132,20 @@ def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Ten
 
 def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: float = 1.0,
                    command: torch.Tensor | None = None, moving_weight: float = 1.0,
-                   speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+                   speed_mps: torch.Tensor | None = None, green_weight: float = 1.0,
+                   green_m: torch.Tensor | None = None) -> torch.Tensor:
     """(B, K) weights of the hazard targets' entries: one with an actor in the path (target > 0)
     weighs `pos_weight`; with `command` (B, n one-hot) a pedestrian in the path while turning
     (LEFT, RIGHT) `turn_weight` times more again; with `speed_mps` (B,) one in the path while
-    the ego moves (MOVING_MPS or faster) `moving_weight` times more again."""
+    the ego moves (MOVING_MPS or faster) `moving_weight` times more again; with `green_m` (B,),
+    hazards.green_distance) and `speed_mps`, the red-light entry of a standing ego at a green
+    line (GREEN_LINE_M or nearer) `green_weight` times: the expert stands there almost only at
+    red, and the light output learnt "standing at the line" for a red light."""
     weight = torch.where(target > 0, pos_weight, 1.0)
+    light = KINDS.index("red_light")
+    if green_m is not None and speed_mps is not None and green_weight != 1.0 and target.shape[1] > light:
+        at_green = (green_m.reshape(-1) <= GREEN_LINE_M) & (speed_mps.reshape(-1) < MOVING_MPS)
+        weight[:, light] *= torch.where(at_green, green_weight, 1.0)
     ped = KINDS.index("pedestrian")
     if command is not None and turn_weight != 1.0:
         turning = command[:, [LEFT - 1, RIGHT - 1]].sum(dim=1) > 0  # one-hot column = command − 1
@@ -151,7 +159,8 @@ def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: f
 
 def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
                 turn_weight: float = 1.0, command: torch.Tensor | None = None,
-                moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+                moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
+                green_weight: float = 1.0, green_m: torch.Tensor | None = None) -> torch.Tensor:
     """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
     batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
     about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
@@ -159,14 +168,17 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
     1 / (1 + w). `turn_weight` weighs the pedestrians in the path while turning more again:
     turning, the ego meets many more waiting on the kerb beside its path than in it.
     `moving_weight` weighs those in the path of a moving ego more: the expert has mostly
-    stopped before a pedestrian is near, so such frames are rare in its recordings."""
-    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps)
+    stopped before a pedestrian is near, so such frames are rare in its recordings.
+    `green_weight` weighs the red-light entry of a standing ego at a green line."""
+    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
+                            green_weight, green_m)
     return (weight * (pred.float() - target).abs()).sum() / weight.sum()
 
 
 def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
                   turn_weight: float = 1.0, command: torch.Tensor | None = None,
-                  moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+                  moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
+                  green_weight: float = 1.0, green_m: torch.Tensor | None = None) -> torch.Tensor:
     """Loss of SC with presence (areas.SC; out (B, 2K): nearness, then logits) against the
     nearness targets (B, K): the logits' binary cross-entropy on "one is in the path", its
     entries weighted by hazard_weights (it says yes where it judges the odds above 1 / (1 +
@@ -538,7 +550,9 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             near = batch["hazard"].to(device)
             k, crossing = len(PATH_KINDS), base.config.hazard_crossing
             own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
-            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps)
+            green_m = batch["green_m"].to(device) if "green_m" in batch else None
+            weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps,
+                       tc.hazard_green_weight, green_m)
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if second is not None:
                 loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near[:, :own], *weights)
@@ -918,6 +932,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard": args.hazard, "--hazard-pos-weight": args.hazard_pos_weight,
              "--hazard-turn-weight": args.hazard_turn_weight,
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
+             "--hazard-green-weight": args.hazard_green_weight,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
@@ -1001,7 +1016,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
                                 ("--hazard-turn-weight", "hazard_turn_weight",
                                  "pedestrians in the path while turning"),
                                 ("--hazard-moving-weight", "hazard_moving_weight",
-                                 "pedestrians in the path of a moving ego")):
+                                 "pedestrians in the path of a moving ego"),
+                                ("--hazard-green-weight", "hazard_green_weight",
+                                 "the red-light entry of a standing ego at a green line")):
         weight = getattr(args, field)
         if weight is None:
             continue

@@ -76,6 +76,9 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
     red = target[:, 2]
     assert result["by"]["ego"]["moving"]["red_light"]["none_frames"] == int((red[moving] <= 0).sum())
     assert result["by"]["ego"]["standing"]["red_light"]["none_frames"] == int((red[~moving] <= 0).sum())
+    # Where the ego stands: at a red line, at a green one, elsewhere (moving counts as elsewhere).
+    assert set(result["by"]["stop line"]) <= {"standing at a red line", "standing at a green line", "elsewhere"}
+    assert "elsewhere" in result["by"]["stop line"]
     table = probe_table(result)
     assert "## pedestrian" in table and "| weather HardRainNoon |" in table
     assert "| all frames, nearness ≥ | 0.2 | 0.3 | 0.4 | 0.5 | 0.6 |" in table

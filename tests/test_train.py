@@ -716,6 +716,39 @@ def test_hazard_moving_weight_weighs_pedestrians_in_the_path_of_a_moving_ego():
     assert presence_loss(out, target, 1.0, moving_weight=4.0, speed_mps=speed) > presence_loss(out, target, 1.0) + 0.1
 
 
+def test_hazard_green_weight_weighs_the_red_light_entry_of_a_standing_ego_at_a_green_line(recorded):
+    """--hazard-green-weight: the red-light entry (none there) of a frame where the ego stands at
+    a green light's stop line (GREEN_LINE_M or nearer, or past it) weighs that much more; moving,
+    farther off, or the other kinds weigh as before, and SC's two-kind loss is untouched. The
+    recordings' samples carry the distance (hazards.green_distance of their /ego/state)."""
+    from bid_model.hazards import GREEN_LINE_M, HAZARD_AHEAD_M, green_distance
+    from bid_model.recordings import open_every_frame
+    from bid_model.train import hazard_loss, hazard_weights, presence_loss
+    from bid_sim.recording import read_episode
+    from bid_sim.snapshot import GREEN, RED
+
+    target = torch.zeros(4, 3)
+    speed = torch.tensor([0.0, 0.0, 5.0, 0.0])
+    green_m = torch.tensor([0.8, -0.3, 1.0, GREEN_LINE_M + 0.5])
+    weight = hazard_weights(target, 2.0, speed_mps=speed, green_weight=4.0, green_m=green_m)
+    assert weight.tolist() == [[1.0, 1.0, 4.0], [1.0, 1.0, 4.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]
+    pred = torch.zeros(4, 3)
+    pred[0, 2] = 0.5  # a red light read at the green line
+    assert float(hazard_loss(pred, target, green_weight=4.0, green_m=green_m, speed_mps=speed)) == \
+        pytest.approx(4 * 0.5 / float(weight.sum()))
+    two = torch.zeros(4, 4)
+    assert presence_loss(two, target[:, :2], 1.0, speed_mps=speed, green_weight=4.0, green_m=green_m) == \
+        pytest.approx(float(presence_loss(two, target[:, :2], 1.0, speed_mps=speed)))
+    assert green_distance({"next_light_state": GREEN, "next_light_dist_m": -0.3}) == pytest.approx(-0.3)
+    assert green_distance({"next_light_state": RED, "next_light_dist_m": 1.0}) == HAZARD_AHEAD_M
+    assert green_distance({"next_light_state": GREEN, "next_light_dist_m": 60.0}) == HAZARD_AHEAD_M
+    data, _ = open_every_frame(recorded, (32, 96))
+    first = read_episode(data.index.files[0], frames=False)
+    want = {int(step): green_distance(state) for step, state in zip(first.steps, first.states, strict=True)}
+    items = [data[i] for i in range(0, len(data), 7) if int(data.index.episode[i]) == 0]
+    assert items and all(it["green_m"] == pytest.approx(want[it["step"]]) for it in items)
+
+
 def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     import argparse
 
