@@ -93,8 +93,9 @@ def export_checkpoint(run: str | Path, out: str | Path, which: str = "best.pt",
 # Auxiliary heads (training signals driving never reads): model config field → (its value
 # without the head, the head's weight prefix, its loss weight in the train config).
 # Checkpoints that differ only in them average into one without the heads they do not all have.
+# The hazard prefix covers hazard_head., hazard_sc., hazard_crossing. and hazard_move_off.
 AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
-             "hazard": (False, "hazard_", "lambda_hazard")}  # hazard_head., hazard_sc., hazard_crossing., hazard_move_off.
+             "hazard": (False, "hazard_", "lambda_hazard")}
 # Fields that shape a head beside its own (→ their value without it): heads alike agree on them too.
 HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False, "hazard_attend": False,
                                                    "hazard_sc": False, "sc_presence": False, "sc_still": False,

@@ -98,8 +98,8 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--move-off-head", action="store_true", default=None,
                    help="with --hazard and a speed input, a second hazard head, fitted alike, that reads "
                         "MPC without the speed token; `bid evaluate --move-off` waits for the pedestrian and "
-                        "vehicle it sees, the brakes and the red light are the first head's; --init from a checkpoint without it starts it as that "
-                        "checkpoint's hazard head")
+                        "vehicle it sees, the brakes and the red light are the first head's; --init from a "
+                        "checkpoint without it starts it as that checkpoint's hazard head")
     p.add_argument("--hazard-crossing", action="store_true", default=None,
                    help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
                         "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")

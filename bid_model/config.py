@@ -181,7 +181,7 @@ class TrainConfig:
     # Further weight of a frame with a pedestrian in the path while the ego moves (train.hazard_loss).
     hazard_moving_weight: float = 1.0
     # Further weight of the red-light entry (none there) of a frame where the ego stands at a green
-    # light's stop line (hazards.GREEN_LINE_M; train.hazard_weights).
+    # light's stop line (hazards.AT_LINE_M; train.hazard_weights).
     hazard_green_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0

@@ -62,9 +62,9 @@ _VERSION = "hazard-v1"  # part of the cache key: bump when the definition change
 ONTO_S = 1.0  # a pedestrian walking onto a crossing within this long is on it already
 WALKING_MPS = 0.3  # slower is standing
 MOVING_MPS = 0.3  # the ego moves at this speed or faster (train --hazard-moving-weight, bid probe)
-# A standing ego's front this near a green light's stop line, or past it, stands "at a green
-# line" (train --hazard-green-weight, bid probe): the expert stands 0.5-1.5 m before a red one.
-GREEN_LINE_M = 3.0
+# A standing ego's front this near a light's stop line, or past it, stands at the line (train
+# --hazard-green-weight, bid probe's "stop line"): the expert stands 0.5-1.5 m before a red one.
+AT_LINE_M = 3.0
 AWAY_M = 0.5  # beyond the corridor by this, a pedestrian walking away from the path is no one's
 _CROSSING_VERSION = "crossing-v2"
 

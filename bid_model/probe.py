@@ -23,7 +23,7 @@ import torch
 from bid_model.checkpoint import load_model
 from bid_model.config import KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import GREEN_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
+from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
 from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection
 from bid_sim.errors import BidError
@@ -50,15 +50,15 @@ def _group(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]
 
 
 def _stop_line(target: torch.Tensor, speed_mps: np.ndarray, green_m: np.ndarray) -> np.ndarray:
-    """Per frame: "standing at a red line" (a red or amber light's stop line GREEN_LINE_M or
+    """Per frame: "standing at a red line" (a red or amber light's stop line AT_LINE_M or
     nearer), "standing at a green line" (hazards.green_distance), else "elsewhere". The expert
     stands at lines almost only at red; a light output that learnt the place reads the green
     ones red too."""
     standing = speed_mps < MOVING_MPS
     light = KINDS.index("red_light")
-    red = (target[:, light] >= 1.0 - GREEN_LINE_M / HAZARD_AHEAD_M).numpy() if target.shape[1] > light else False
+    red = (target[:, light] >= 1.0 - AT_LINE_M / HAZARD_AHEAD_M).numpy() if target.shape[1] > light else False
     return np.where(standing & red, "standing at a red line",
-                    np.where(standing & (green_m <= GREEN_LINE_M), "standing at a green line", "elsewhere"))
+                    np.where(standing & (green_m <= AT_LINE_M), "standing at a green line", "elsewhere"))
 
 
 def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,

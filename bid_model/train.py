@@ -61,7 +61,7 @@ from bid_model.config import (
     with_variant,
 )
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.hazards import GREEN_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
+from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
 from bid_model.losses import l1_loss
 from bid_model.model import (
     BID,
@@ -137,14 +137,14 @@ def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: f
     """(B, K) weights of the hazard targets' entries: one with an actor in the path (target > 0)
     weighs `pos_weight`; with `command` (B, n one-hot) a pedestrian in the path while turning
     (LEFT, RIGHT) `turn_weight` times more again; with `speed_mps` (B,) one in the path while
-    the ego moves (MOVING_MPS or faster) `moving_weight` times more again; with `green_m` (B,),
+    the ego moves (MOVING_MPS or faster) `moving_weight` times more again; with `green_m` ((B,),
     hazards.green_distance) and `speed_mps`, the red-light entry of a standing ego at a green
-    line (GREEN_LINE_M or nearer) `green_weight` times: the expert stands there almost only at
+    line (AT_LINE_M or nearer) `green_weight` times: the expert stands there almost only at
     red, and the light output learnt "standing at the line" for a red light."""
     weight = torch.where(target > 0, pos_weight, 1.0)
     light = KINDS.index("red_light")
     if green_m is not None and speed_mps is not None and green_weight != 1.0 and target.shape[1] > light:
-        at_green = (green_m.reshape(-1) <= GREEN_LINE_M) & (speed_mps.reshape(-1) < MOVING_MPS)
+        at_green = (green_m.reshape(-1) <= AT_LINE_M) & (speed_mps.reshape(-1) < MOVING_MPS)
         weight[:, light] *= torch.where(at_green, green_weight, 1.0)
     ped = KINDS.index("pedestrian")
     if command is not None and turn_weight != 1.0:

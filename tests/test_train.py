@@ -718,10 +718,10 @@ def test_hazard_moving_weight_weighs_pedestrians_in_the_path_of_a_moving_ego():
 
 def test_hazard_green_weight_weighs_the_red_light_entry_of_a_standing_ego_at_a_green_line(recorded):
     """--hazard-green-weight: the red-light entry (none there) of a frame where the ego stands at
-    a green light's stop line (GREEN_LINE_M or nearer, or past it) weighs that much more; moving,
+    a green light's stop line (AT_LINE_M or nearer, or past it) weighs that much more; moving,
     farther off, or the other kinds weigh as before, and SC's two-kind loss is untouched. The
     recordings' samples carry the distance (hazards.green_distance of their /ego/state)."""
-    from bid_model.hazards import GREEN_LINE_M, HAZARD_AHEAD_M, green_distance
+    from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, green_distance
     from bid_model.recordings import open_every_frame
     from bid_model.train import hazard_loss, hazard_weights, presence_loss
     from bid_sim.recording import read_episode
@@ -729,7 +729,7 @@ def test_hazard_green_weight_weighs_the_red_light_entry_of_a_standing_ego_at_a_g
 
     target = torch.zeros(4, 3)
     speed = torch.tensor([0.0, 0.0, 5.0, 0.0])
-    green_m = torch.tensor([0.8, -0.3, 1.0, GREEN_LINE_M + 0.5])
+    green_m = torch.tensor([0.8, -0.3, 1.0, AT_LINE_M + 0.5])
     weight = hazard_weights(target, 2.0, speed_mps=speed, green_weight=4.0, green_m=green_m)
     assert weight.tolist() == [[1.0, 1.0, 4.0], [1.0, 1.0, 4.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]
     pred = torch.zeros(4, 3)
