@@ -377,7 +377,8 @@ class BIDAgent:
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0 or self.crossing_brake > 0)
-        second = self.move_off_steps > 0 and self.config.model.move_off_head  # move-off's own head
+        # move-off's own head, unless move_off_sc reads SC in its place
+        second = self.move_off_steps > 0 and self.config.model.move_off_head and not self.move_off_sc
         out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard,
                          hazard_apart=self.move_off_sc, move_off=second)
         control, *extra = out if isinstance(out, tuple) else (out,)

@@ -227,14 +227,15 @@ def ranking_auc(positive: np.ndarray, negative: np.ndarray) -> float:
 
 
 def _split_outputs(out: torch.Tensor | tuple[torch.Tensor, ...], tc: TrainConfig
-                   ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
-    """(control, forecast or None, hazard or None) of BID.forward(forecast=..., hazard=...)."""
+                   ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+    """(control, forecast or None, hazard or None, move-off head's or None) of
+    BID.forward(forecast=..., hazard=..., move_off=...)."""
     if isinstance(out, torch.Tensor):
-        return out, None, None
+        return out, None, None, None
     rest = list(out[1:])
     ahead = rest.pop(0) if tc.lambda_forecast > 0 else None
     hazard = rest.pop(0) if tc.lambda_hazard > 0 else None
-    return out[0], ahead, hazard
+    return out[0], ahead, hazard, (rest.pop(0) if rest else None)
 
 
 def forecast_steps(config: RunConfig) -> tuple[int, ...]:
@@ -537,12 +538,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             *flipped, target = mirror(*inputs[:3], target, tc.mirror)
             inputs = (*flipped, inputs[3])
         with _autocast(device):
-            out = net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0, **kwargs)
-        second = None
-        if move_off:  # the last output (control and the first head's come first)
-            *rest, second = out
-            out = tuple(rest)
-        pred, ahead, hazard = _split_outputs(out, tc)
+            pred, ahead, hazard, second = _split_outputs(
+                net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0, **kwargs), tc)
         loss = l1_loss(pred, target, tc)
         if ahead is not None:
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
@@ -586,12 +583,11 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
     for batch in loader:
         inputs, target = batch_inputs(batch, device)
         with _autocast(device):
-            out = model(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0,
-                        **({"move_off": True} if move_off else {}))
-            if move_off:
-                *out, second = out
+            pred, ahead, hazard, second = _split_outputs(
+                model(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0,
+                      **({"move_off": True} if move_off else {})), tc)
+            if second is not None:
                 second_pred.append(second.float().cpu())
-            pred, ahead, hazard = _split_outputs(tuple(out) if move_off else out, tc)
             if ahead is not None:
                 forecast_err.append((ahead.float().cpu() - batch["future_speed"]).abs())
             if hazard is not None:
