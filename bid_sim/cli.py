@@ -92,7 +92,9 @@ def _record(args: argparse.Namespace) -> int:
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
                      progress=not args.json, perturb=args.perturb, ray_address=args.ray,
-                     dagger=args.dagger, bends=args.bends)
+                     dagger=args.dagger, bends=args.bends,
+                     dagger_options=_drive_options(args, None if args.dagger else
+                                                   "is how the --dagger student drives; give --dagger CHECKPOINT or drop it"))
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
     return 2 if summary["failed"] else 0
 
@@ -123,6 +125,25 @@ def _tables(args: argparse.Namespace) -> int:
     return 0
 
 
+def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | None:
+    """The BID agent's keyword options from the drive flags given (_add_drive_arguments), None if
+    none; `misplaced`, when not None, is the error's end for a flag given where no BID drives."""
+    given = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
+             "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
+             "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
+             "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
+             "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
+             "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
+             "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
+             "move_off_sc": args.move_off_sc}
+    for key, value in given.items():
+        if value is not None and misplaced is not None:
+            raise BidError(f"--{key.replace('_', '-')} {misplaced}")
+    # A hold or a wait of 0 means something (never hold, no wait), so it is kept where the other options' 0 is dropped.
+    return {k: v for k, v in given.items()
+            if v or (k in ("pedestrian_hold", "move_off_braked") and v is not None)} or None
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     from bid_sim.evaluate import compare, evaluate
     from bid_sim.weather import parse_weathers
@@ -133,20 +154,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     densities = tuple(d.strip() for d in args.density.split(",") if d.strip())
     routes = [int(r) for r in args.routes.split(",")] if args.routes else None
     out = args.out or f"results/{args.town}_{args.agent.replace(':', '_')}_{'-'.join(densities)}"
-    brakes = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
-              "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
-              "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
-              "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
-              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
-              "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
-              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
-              "move_off_sc": args.move_off_sc}
-    for key, value in brakes.items():
-        if value is not None and args.agent != "bid":
-            raise BidError(f"--{key.replace('_', '-')} is an option of --agent bid, not of {args.agent!r}; drop it")
-    # A hold or a wait of 0 means something (never hold, no wait), so it is kept where the other options' 0 is dropped.
-    options = {k: v for k, v in brakes.items()
-               if v or (k in ("pedestrian_hold", "move_off_braked") and v is not None)} or None
+    options = _drive_options(args, f"is an option of --agent bid, not of {args.agent!r}; drop it"
+                             if args.agent != "bid" else None)
     summary = evaluate(args.town, densities, parse_weathers(args.weathers), args.seeds, args.agent, out,
                        checkpoint=args.checkpoint, workers=args.workers, routes=routes, record=args.record,
                        video=args.video, progress=not args.json, max_steps=args.max_steps,
@@ -194,6 +203,72 @@ def _add_ray_argument(p: argparse.ArgumentParser, files: str) -> None:
                    "or auto; --ray alone uses $RAY_ADDRESS, else the cluster last started on this "
                    f"machine, else a new local Ray instance. {files} must be on a filesystem every "
                    "node sees. Results equal a local run's. Needs pip install 'bid-sim[cluster]'")
+
+
+def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of how a BID drives (bid_model/agent.py): the agent of `bid evaluate --agent bid`,
+    the student of `bid record --dagger`."""
+    g = p.add_argument_group("how --agent bid drives" if p.prog.endswith("evaluate") else
+                             "how the --dagger student drives (as bid evaluate --agent bid drives)")
+    g.add_argument("--forecast-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --forecast: brake at least GAIN times as "
+                         "hard as reaching its forecast speed 1 s ahead takes (bid_model/agent.py)")
+    g.add_argument("--hazard-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                         "hard as stopping short of the pedestrian its hazard head sees in the path takes, "
+                         "and stay standing while one is within 8 m (bid_model/agent.py)")
+    g.add_argument("--vehicle-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                         "hard as stopping short of the vehicle its hazard head sees in the path takes, "
+                         "once it is nearer than 1 s at the ego's speed + 4 m (bid_model/agent.py)")
+    g.add_argument("--light-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                         "hard as stopping 1 m short of the red light's stop line its hazard head sees "
+                         "takes (bid_model/agent.py)")
+    g.add_argument("--move-off", type=float, default=None, metavar="S",
+                    help="--agent bid with a model trained with --hazard: once the ego has stood S seconds "
+                         "and the hazard head sees no red light, pedestrian or vehicle within 8 m, "
+                         "move off at accel 0.5 whatever the control head says (bid_model/agent.py)")
+    g.add_argument("--move-off-to", type=float, default=None, metavar="MPS",
+                    help="--agent bid with --move-off: the speed moving off drives the ego to before the "
+                         "control head has it again (default 2) (bid_model/agent.py)")
+    g.add_argument("--move-off-braked", type=float, default=None, metavar="S",
+                    help="--agent bid with --move-off: after a stop the brakes made against the control "
+                         "head, move off once clear for S seconds, not --move-off's (bid_model/agent.py)")
+    g.add_argument("--path-memory", type=float, default=None, metavar="S",
+                    help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
+                         "the path within 6 m counts for the brakes and move-off S seconds after the head "
+                         "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
+                         "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
+    g.add_argument("--pedestrian-hold", type=float, default=None, metavar="M",
+                    help="--agent bid with --hazard-brake: a pedestrian seen in the path within M metres "
+                         "keeps an ego slower than 2 m/s standing (default 8, as the expert; 0: never "
+                         "held, only stopped 2 m short of) (bid_model/agent.py)")
+    g.add_argument("--max-speed", type=float, default=None, metavar="MPS",
+                    help="--agent bid: brake whenever the ego is faster than MPS m/s, by 1 share of full "
+                         "braking per m/s over (0: no cap) (bid_model/agent.py)")
+    g.add_argument("--turn-speed", type=float, default=None, metavar="MPS",
+                    help="--agent bid: while the command is LEFT or RIGHT (from 20 m before the junction), "
+                         "brake whenever the ego is faster than MPS m/s, as --max-speed does (0: no cap) (bid_model/agent.py)")
+    g.add_argument("--crossing-brake", type=float, default=None, metavar="GAIN",
+                    help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
+                         "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "
+                         "sees takes, and hold an ego slower than 2 m/s within 6 m of it (bid_model/agent.py)")
+    g.add_argument("--start-cap", type=float, default=None, metavar="MPS",
+                    help="--agent bid: once the ego has stood 1 s, drive its next 12 m (--start-cap-m) no "
+                         "faster than MPS m/s (0: no cap) (bid_model/agent.py)")
+    g.add_argument("--start-cap-m", type=float, default=None, metavar="M",
+                    help="--agent bid with --start-cap: how many metres of a start it caps (default 12)")
+    g.add_argument("--sc-still", action="store_true", default=None,
+                    help="--agent bid with SC (--hazard-sc): SC reads frame t alone, its change since t-1 "
+                         "zeroed, as a checkpoint trained with --sc-still does (bid_model/agent.py)")
+    g.add_argument("--sc-still-moving", action="store_true", default=None,
+                    help="--agent bid with SC: as --sc-still, but only while the ego moves (0.3 m/s or "
+                         "faster); standing, SC reads both frames as trained (bid_model/agent.py)")
+    g.add_argument("--move-off-sc", action="store_true", default=None,
+                    help="--agent bid with --move-off and SC: move-off waits for the pedestrian and the "
+                         "vehicle SC sees, not the hazard head (which reads the speed input and, standing, "
+                         "a car ahead in an empty street) (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -254,6 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="share of driving time with steering noise; labels stay the expert's (recovery data)")
     rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
                      help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
+    _add_drive_arguments(rec)
     rec.add_argument("--bends", action="store_true",
                      help="only routes that take a bend of the road (a corner, driven under LANEFOLLOW) "
                           "in their first 250 m; few random routes do")
@@ -280,65 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=int, default=3)
     ev.add_argument("--agent", default="expert", help="expert, lanefollow, bid or module:Class")
     ev.add_argument("--checkpoint", default=None, help="the model checkpoint for --agent bid")
-    ev.add_argument("--forecast-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --forecast: brake at least GAIN times as "
-                         "hard as reaching its forecast speed 1 s ahead takes (bid_model/agent.py)")
-    ev.add_argument("--hazard-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
-                         "hard as stopping short of the pedestrian its hazard head sees in the path takes, "
-                         "and stay standing while one is within 8 m (bid_model/agent.py)")
-    ev.add_argument("--vehicle-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
-                         "hard as stopping short of the vehicle its hazard head sees in the path takes, "
-                         "once it is nearer than 1 s at the ego's speed + 4 m (bid_model/agent.py)")
-    ev.add_argument("--light-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
-                         "hard as stopping 1 m short of the red light's stop line its hazard head sees "
-                         "takes (bid_model/agent.py)")
-    ev.add_argument("--move-off", type=float, default=None, metavar="S",
-                    help="--agent bid with a model trained with --hazard: once the ego has stood S seconds "
-                         "and the hazard head sees no red light, pedestrian or vehicle within 8 m, "
-                         "move off at accel 0.5 whatever the control head says (bid_model/agent.py)")
-    ev.add_argument("--move-off-to", type=float, default=None, metavar="MPS",
-                    help="--agent bid with --move-off: the speed moving off drives the ego to before the "
-                         "control head has it again (default 2) (bid_model/agent.py)")
-    ev.add_argument("--move-off-braked", type=float, default=None, metavar="S",
-                    help="--agent bid with --move-off: after a stop the brakes made against the control "
-                         "head, move off once clear for S seconds, not --move-off's (bid_model/agent.py)")
-    ev.add_argument("--path-memory", type=float, default=None, metavar="S",
-                    help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
-                         "the path within 6 m counts for the brakes and move-off S seconds after the head "
-                         "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
-                         "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
-    ev.add_argument("--pedestrian-hold", type=float, default=None, metavar="M",
-                    help="--agent bid with --hazard-brake: a pedestrian seen in the path within M metres "
-                         "keeps an ego slower than 2 m/s standing (default 8, as the expert; 0: never "
-                         "held, only stopped 2 m short of) (bid_model/agent.py)")
-    ev.add_argument("--max-speed", type=float, default=None, metavar="MPS",
-                    help="--agent bid: brake whenever the ego is faster than MPS m/s, by 1 share of full "
-                         "braking per m/s over (0: no cap) (bid_model/agent.py)")
-    ev.add_argument("--turn-speed", type=float, default=None, metavar="MPS",
-                    help="--agent bid: while the command is LEFT or RIGHT (from 20 m before the junction), "
-                         "brake whenever the ego is faster than MPS m/s, as --max-speed does (0: no cap) (bid_model/agent.py)")
-    ev.add_argument("--crossing-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
-                         "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "
-                         "sees takes, and hold an ego slower than 2 m/s within 6 m of it (bid_model/agent.py)")
-    ev.add_argument("--start-cap", type=float, default=None, metavar="MPS",
-                    help="--agent bid: once the ego has stood 1 s, drive its next 12 m (--start-cap-m) no "
-                         "faster than MPS m/s (0: no cap) (bid_model/agent.py)")
-    ev.add_argument("--start-cap-m", type=float, default=None, metavar="M",
-                    help="--agent bid with --start-cap: how many metres of a start it caps (default 12)")
-    ev.add_argument("--sc-still", action="store_true", default=None,
-                    help="--agent bid with SC (--hazard-sc): SC reads frame t alone, its change since t-1 "
-                         "zeroed, as a checkpoint trained with --sc-still does (bid_model/agent.py)")
-    ev.add_argument("--sc-still-moving", action="store_true", default=None,
-                    help="--agent bid with SC: as --sc-still, but only while the ego moves (0.3 m/s or "
-                         "faster); standing, SC reads both frames as trained (bid_model/agent.py)")
-    ev.add_argument("--move-off-sc", action="store_true", default=None,
-                    help="--agent bid with --move-off and SC: move-off waits for the pedestrian and the "
-                         "vehicle SC sees, not the hazard head (which reads the speed input and, standing, "
-                         "a car ahead in an empty street) (bid_model/agent.py)")
+    _add_drive_arguments(ev)
     ev.add_argument("--workers", type=int, default=max(1, min(os.cpu_count() or 1, 8)))
     ev.add_argument("--routes", default=None, help="a comma-separated subset of route indices")
     ev.add_argument("--record", action="store_true", help="write each episode's MCAP recording")

@@ -45,6 +45,7 @@ class EpisodeSpec:
     max_steps: int | None = None
     perturb: float = 0.0  # share of driving time with steering noise (bid_sim.perturb)
     dagger: str | None = None  # checkpoint of a BID that drives while `agent` labels (bid_sim.perturb.Dagger)
+    dagger_options: dict | None = None  # how that BID drives: BIDAgent's options, as `bid evaluate` gives them
 
     @property
     def name(self) -> str:
@@ -53,7 +54,8 @@ class EpisodeSpec:
 
 def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
                   seed: int, agent: str = "expert", max_steps: int | None = None,
-                  perturb: float = 0.0, dagger: str | None = None, bends: bool = False) -> list[EpisodeSpec]:
+                  perturb: float = 0.0, dagger: str | None = None, bends: bool = False,
+                  dagger_options: dict | None = None) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -71,7 +73,8 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
         raise BidError(f"{t.name} yields only {len(routes)} {kind}; record fewer episodes")
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
-                        seed * 100_000 + i, agent, max_steps, perturb, dagger) for i in range(episodes)]
+                        seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options)
+            for i in range(episodes)]
 
 
 def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
@@ -79,16 +82,25 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
     plans: which route, which seed, who drove and how."""
     return {"route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->{spec.route.goal_edge}@{spec.route.goal_pos_m}",
             "seed": str(spec.seed), "agent": spec.agent, "perturb": str(spec.perturb),
-            "dagger": Path(spec.dagger).name if spec.dagger else ""}
+            "dagger": Path(spec.dagger).name if spec.dagger else "", "dagger_drive": drive_words(spec.dagger_options)}
+
+
+def drive_words(options: dict | None) -> str:
+    """A student's drive options as `bid evaluate`'s flags ("--light-brake 1 --move-off 8"; "" for none)."""
+    words = []
+    for key, value in sorted((options or {}).items()):
+        flag = "--" + key.replace("_", "-")
+        words.append(flag if value is True else f"{flag} {value:g}")
+    return " ".join(words)
 
 
 def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
-    recording) only if it is the episode `spec` plans: another --seed, --perturb, --dagger,
-    --agent or town would otherwise mix two recordings under one folder unnoticed. `town`, `tag`:
-    the plan's town and its net_tag, found once per recording."""
+    recording) only if it is the episode `spec` plans: another --seed, --perturb, --dagger (or
+    how its student drives), --agent or town would otherwise mix two recordings under one
+    folder unnoticed. `town`, `tag`: the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
-    theirs = {**theirs, "dagger": theirs.get("dagger", "")}
+    theirs = {**theirs, "dagger": theirs.get("dagger", ""), "dagger_drive": theirs.get("dagger_drive", "")}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
     if theirs.get("town") != town.name:
@@ -132,7 +144,8 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
         from bid_sim.evaluate import load_agent
 
         facts["dagger"] = Path(spec.dagger).name  # the student that drove; `agent` labelled
-        agent = Dagger(load_agent("bid", spec.dagger), agent)
+        facts["dagger_drive"] = drive_words(spec.dagger_options)  # and how it drove
+        agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent)
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
@@ -154,10 +167,12 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
-           dagger: str | None = None, bends: bool = False) -> dict:
+           dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
     bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
-    dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger).
+    dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger);
+    dagger_options: how it drives (bid_model.agent.BIDAgent's options, as `bid evaluate` passes
+    them), so that the student visits the states it visits when evaluated so.
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
@@ -183,9 +198,12 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
             raise BidError(f"--dagger {dagger}: no such checkpoint; give a run's best.pt or checkpoints/bid_small.pt")
         from bid_sim.evaluate import load_agent
 
-        load_agent("bid", dagger)  # a damaged or foreign checkpoint fails here, once
+        load_agent("bid", dagger, dagger_options)  # a damaged or foreign checkpoint, or an option it lacks, fails here
         dagger = str(Path(dagger).resolve())
-    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends)
+    elif dagger_options:
+        raise BidError("drive options are how the --dagger student drives; give --dagger CHECKPOINT or drop them")
+    specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends,
+                          dagger_options)
     plan_town = resolve_town(town)
     plan_tag = net_tag(plan_town)
     for s in specs:

@@ -174,3 +174,30 @@ def test_bid_record_dagger_writes_labelled_recordings(tmp_path):
     assert len(files) == 1 and not partial
     ix = _index(files, keep_jpeg=False)
     assert ix.facts[0]["dagger"] == "bid_small.pt" and len(ix.step) == 40
+
+
+def test_bid_record_dagger_drives_the_student_with_the_drive_flags_given(tmp_path, capsys):
+    from bid_model.recordings import _index, find_recordings
+    from bid_sim.cli import main as bid
+
+    def record(out, *drive):
+        return bid(["record", "--town", "02", "--episodes", "1", "--densities", "none", "--weathers", "ClearNoon",
+                    "--max-steps", "60", "--workers", "1", "--dagger", "checkpoints/bid_small.pt",
+                    *drive, "--out", str(out), "--json"])
+
+    def speeds_and_facts(out):
+        files, _ = find_recordings(out)
+        ix = _index(files, keep_jpeg=False)
+        return ix.speed, ix.facts[0]
+
+    assert record(tmp_path / "free") == 0
+    assert record(tmp_path / "capped", "--max-speed", "1", "--move-off", "8") == 0
+    free, free_facts = speeds_and_facts(tmp_path / "free")
+    capped, facts = speeds_and_facts(tmp_path / "capped")
+    assert free_facts["dagger_drive"] == "" and facts["dagger_drive"] == "--max-speed 1 --move-off 8"
+    assert free.max() > 3.0 and capped.max() < 2.5  # the student drove under the cap
+    # Finishing that folder needs the same drive; a drive flag needs a student.
+    assert record(tmp_path / "capped", "--max-speed", "1") == 2
+    assert "dagger_drive '--max-speed 1 --move-off 8' here, '--max-speed 1' planned" in capsys.readouterr().err
+    assert bid(["record", "--town", "02", "--episodes", "1", "--light-brake", "1", "--out", str(tmp_path / "x")]) == 2
+    assert "--light-brake is how the --dagger student drives; give --dagger" in capsys.readouterr().err
