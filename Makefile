@@ -45,6 +45,9 @@ AUGMENT ?= 0
 HARD_REPEAT ?= 1
 # BENDS=1: the round drives only routes that take a corner of the road early (bid record --bends).
 BENDS ?=
+# How the student drives (bid evaluate's drive flags): STUDENT_DRIVE='$(SHIPPED_DRIVE)' drives it
+# as the shipped BID is evaluated; empty, on its control head alone (all rounds so far).
+STUDENT_DRIVE ?=
 # FORECAST=W: train the auxiliary speed forecast too, its loss weighted W (the shipped BID: 0.5).
 FORECAST ?=
 
@@ -96,7 +99,7 @@ record: $(STAMP)
 # expert labels every frame and takes the wheel when the BID strays; then the BID is
 # fine-tuned from STUDENT on everything under data/town01 (demonstrations and DAgger rounds).
 dagger: $(STAMP)
-	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) --workers $(WORKERS) \
+	$(BID) record --town 01 --episodes $(EPISODES) --seed $(ROUND) --dagger $(STUDENT) $(STUDENT_DRIVE) --workers $(WORKERS) \
 		$(if $(BENDS),--bends) --out data/town01/dagger$(ROUND)
 	$(BID) train --preset small --data data/town01 --name $(DAGGER_RUN) \
 		$(if $(wildcard runs/$(DAGGER_RUN)/last.pt),--resume,--init $(STUDENT) --epochs $(DAGGER_EPOCHS) --lr 1e-4 --augment $(AUGMENT) \

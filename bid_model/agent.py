@@ -202,6 +202,10 @@ class BIDAgent:
     standing it does not see a vehicle because the ego stands; reading its red light too, the
     ego moved off through red lights it stood at (docs/experiments.md, "Two hazard heads"). With
     path_memory, move-off reads what the memory keeps, as the brakes do.
+    move_off_light: with a move-off head, move-off waits for that head's red light and the first
+    head's pedestrian and vehicle instead (a head reading the speed, model.move_off_speed, fitted
+    to read a green light at the stop line as none: `bid train --hazard-green-weight`), so that
+    the head the brakes read, pedestrian and vehicle, stays as it was (docs/experiments.md).
     move_off_to: m/s; with move_off, the speed it moves the ego off to (START_MPS when None). A
     control head that waits where the expert would go brakes a moved-off ego back to standing
     from START_MPS; moved off to 4 m/s, crowded routes finish more often, with more contacts
@@ -254,7 +258,7 @@ class BIDAgent:
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
                  start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None,
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
-                 turn_speed: float = 0.0, move_off_sc: bool = False):
+                 turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -311,6 +315,11 @@ class BIDAgent:
         if move_off_sc and path_memory:
             raise BidError("move_off_sc reads SC as it sees now, path_memory what was seen; keep one")
         self.move_off_sc = move_off_sc
+        if move_off_light and not (move_off and self.config.model.move_off_head):
+            raise BidError(f"move_off_light is the red light move_off reads from the move-off head; "
+                           f"{'add move_off' if not move_off else f'{checkpoint} has none (bid train --move-off-head)'}, "
+                           "or drop it")
+        self.move_off_light = move_off_light
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -377,8 +386,9 @@ class BIDAgent:
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0 or self.crossing_brake > 0)
-        # move-off's own head, unless move_off_sc reads SC in its place
-        second = self.move_off_steps > 0 and self.config.model.move_off_head and not self.move_off_sc
+        # move-off's own head, unless move_off_sc reads SC in its place (and it gives no red light)
+        second = (self.move_off_steps > 0 and self.config.model.move_off_head
+                  and (self.move_off_light or not self.move_off_sc))
         out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard,
                          hazard_apart=self.move_off_sc, move_off=second)
         control, *extra = out if isinstance(out, tuple) else (out,)
@@ -395,10 +405,13 @@ class BIDAgent:
             merged = self.model.merge_hazard if self.move_off_sc else (lambda h: h)
             near = clear_near = tuple(float(x) for x in merged(hazard)[0])
             k = len(PATH_KINDS)
-            if second:  # the move-off head's pedestrian and vehicle, the first head's red light
-                clear_near = (*(float(x) for x in merged(extra.pop(0))[0, :k]), *near[k:])
-            if self.move_off_sc:  # SC's pedestrian and vehicle, the head's red light
-                clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *near[k:])
+            if second:
+                own = tuple(float(x) for x in merged(extra.pop(0))[0])
+                # its red light, the first head's pedestrian and vehicle; else the other way round
+                clear_near = ((*near[:k], own[k], *near[k + 1:]) if self.move_off_light
+                              else (*own[:k], *near[k:]))
+            if self.move_off_sc:  # SC's pedestrian and vehicle, the red light as above
+                clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *clear_near[k:])
             if self.memory is not None:
                 near = clear_near = self.memory.update(near, v)
             if self.move_off_steps:

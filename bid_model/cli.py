@@ -100,6 +100,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "MPC without the speed token; `bid evaluate --move-off` waits for the pedestrian and "
                         "vehicle it sees, the brakes and the red light are the first head's; --init from a "
                         "checkpoint without it starts it as that checkpoint's hazard head")
+    p.add_argument("--move-off-speed", action="store_true", default=None,
+                   help="with --move-off-head, the move-off head reads MPC with the speed token, as the "
+                        "first head does: a second head of the same kind, fitted apart (e.g. with "
+                        "--hazard-green-weight), whose red light `bid evaluate --move-off-light` reads")
     p.add_argument("--hazard-crossing", action="store_true", default=None,
                    help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
                         "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")

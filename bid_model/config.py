@@ -32,7 +32,7 @@ INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
 # Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
-READ_FIELDS = frozenset({"sc_still", "hazard_speedless"})
+READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -114,6 +114,10 @@ class ModelConfig:
     # red lights a moving ego met within 10 m where the first saw 99.2 %, and standing it no
     # longer reads "standing, so a vehicle ahead" (docs/experiments.md, "Two hazard heads").
     move_off_head: bool = False
+    # The move-off head reads MPC with the speed token, as the first head does: a second head of the
+    # same kind fitted to other data or weights (`bid train --move-off-speed`), whose red light
+    # move-off can read (BIDAgent's move_off_light) while the brakes keep the first head.
+    move_off_speed: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -139,6 +143,8 @@ class ModelConfig:
             raise ValueError("move_off_head is a hazard head without the speed input: it needs hazard and speed_input")
         if self.move_off_head and self.hazard_speedless:
             raise ValueError("with hazard_speedless the hazard head already reads no speed: drop move_off_head")
+        if self.move_off_speed and not self.move_off_head:
+            raise ValueError("move_off_speed is how the move-off head reads: it needs move_off_head")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 

@@ -154,7 +154,8 @@ class BID(nn.Module):
         # With config.hazard_crossing a second SC map of its own, one kind: how near the next crossing
         # on the path with a pedestrian on it is (the fourth hazard output; warm_start_crossing).
         self.hazard_crossing = SC(c.frame_hw, c.n_commands, 1) if c.hazard_crossing else None
-        # With config.move_off_head a second hazard head, alike, reading MPC without the speed token.
+        # With config.move_off_head a second hazard head, alike, reading MPC without the speed token
+        # (with config.move_off_speed with it).
         self.hazard_move_off = self._new_hazard_head() if c.move_off_head else None
 
         for name, shape in self.output_shapes().items():
@@ -278,7 +279,7 @@ class BID(nn.Module):
             speed = speed_mps.reshape(b, 1, 1).float() / SPEED_SCALE_MPS
             streams["speed"] = self.speed_token(speed)
         feats["MPC"] = self._area("MPC", streams)
-        if c.hazard_speedless or c.move_off_head:  # for a hazard head alone
+        if c.hazard_speedless or (c.move_off_head and not c.move_off_speed):  # for a hazard head alone
             feats["MPC_speedless"] = self._speedless_mpc({k: v for k, v in streams.items() if k != "speed"})
         if self.hazard_sc is not None:
             seen = self._normalise(frame_t)
@@ -323,13 +324,15 @@ class BID(nn.Module):
         outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
         then its logits), so that training fits each alone); with config.hazard_crossing the last
         column is how near an occupied crossing is (its own SC map's), both ways. `move_off`: the
-        same from the second head (config.move_off_head), which reads MPC without the speed."""
+        same from the second head (config.move_off_head), which reads MPC without the speed
+        (config.move_off_speed: with it)."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
         if move_off and self.hazard_move_off is None:
             raise BidError("this model has no move-off head; train one with --move-off-head")
         head = self.hazard_move_off if move_off else self.hazard_head
-        mpc = features["MPC_speedless"] if self.config.hazard_speedless or move_off else features["MPC"]
+        speedless = not self.config.move_off_speed if move_off else self.config.hazard_speedless
+        mpc = features["MPC_speedless"] if speedless else features["MPC"]
         if self.config.hazard_attend:
             near = head({**features, "MPC": mpc})
         else:

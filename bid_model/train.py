@@ -932,6 +932,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
+             "--move-off-speed": args.move_off_speed,
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
@@ -1061,6 +1062,10 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if model.hazard_speedless:
             raise BidError("with --hazard-speedless the hazard head already reads no speed: keep one")
         model = dataclasses.replace(model, move_off_head=True)
+    if args.move_off_speed:
+        if not model.move_off_head:
+            raise BidError("--move-off-speed is how the move-off head reads: add --move-off-head")
+        model = dataclasses.replace(model, move_off_speed=True)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

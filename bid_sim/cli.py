@@ -135,7 +135,7 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
              "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
-             "move_off_sc": args.move_off_sc}
+             "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -269,6 +269,10 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                     help="--agent bid with --move-off and SC: move-off waits for the pedestrian and the "
                          "vehicle SC sees, not the hazard head (which reads the speed input and, standing, "
                          "a car ahead in an empty street) (bid_model/agent.py)")
+    g.add_argument("--move-off-light", action="store_true", default=None,
+                    help="--agent bid with --move-off and a move-off head (bid train --move-off-head "
+                         "--move-off-speed): move-off waits for that head's red light and the first head's "
+                         "pedestrian and vehicle (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

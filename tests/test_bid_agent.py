@@ -740,3 +740,55 @@ def test_a_move_off_head_decides_moving_off_and_the_first_head_braking(tmp_path)
     assert torch.allclose(outs[0], outs[1], atol=1e-6)
     with pytest.raises(BidError, match="no move-off head"):
         BIDAgent(shipped).model(frame_t, prev, cmd, speed, hazard=True, move_off=True)
+
+
+def test_move_off_light_waits_for_the_move_off_heads_red_light_and_the_first_heads_path(tmp_path):
+    """With `move_off_light` (a move-off head reading the speed, `bid train --move-off-head
+    --move-off-speed`), move-off waits for the move-off head's red light and the first head's
+    pedestrian and vehicle; the brakes still read the first head."""
+    import numpy as np
+    import torch
+
+    from bid_model.agent import MOVE_OFF_ACCEL
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    two = load_checkpoint(shipped)
+    two["config"]["model"].update(move_off_head=True, move_off_speed=True)
+    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
+                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
+    save_checkpoint(tmp_path / "two.pt", two)
+    agent = BIDAgent(tmp_path / "two.pt", move_off=0.3, move_off_light=True)
+    frame = np.random.default_rng(4).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+
+    def see(first: tuple[float, float], second: tuple[float, float]) -> list[float]:
+        """(vehicle, red light) each head reads; the control head brakes hard: three steps' accel."""
+        with torch.no_grad():
+            agent.model.areas["CPC"].head[-1].weight.zero_()
+            agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, -100.0]))
+            agent.model.hazard_sc.priority[-1].weight.zero_()  # SC sees nothing
+            agent.model.hazard_sc.priority[-1].bias.zero_()
+            for head, (vehicle, red) in ((agent.model.hazard_head, first), (agent.model.hazard_move_off, second)):
+                head[-1].weight.zero_()
+                head[-1].bias.copy_(torch.tensor([0.0, vehicle, red]))
+        agent.reset(None)
+        still = Observation(frame, frame, 4, 0.0, None)
+        return [agent.act(still).accel for _ in range(3)]
+
+    moves, waits = pytest.approx([-1.0, -1.0, MOVE_OFF_ACCEL], abs=1e-5), pytest.approx([-1.0] * 3, abs=1e-5)
+    assert see(first=(0.0, 0.9), second=(0.0, 0.0)) == moves  # the first head's red light is not read
+    assert see(first=(0.0, 0.0), second=(0.0, 0.9)) == waits  # the move-off head's is
+    assert see(first=(0.0, 0.0), second=(0.9, 0.0)) == moves  # its vehicle is not
+    assert see(first=(0.9, 0.0), second=(0.0, 0.0)) == waits  # the first head's is
+    # The move-off head reads MPC with the speed token, as the first head does.
+    model = BIDAgent(tmp_path / "two.pt").model
+    frame_t, prev, cmd, speed = one_input(agent.hw, seed=2, command=2, speed_mps=3.0)
+    with torch.inference_mode():
+        feats = model.forward_features(frame_t, prev, cmd, speed)
+        _, first, second = model(frame_t, prev, cmd, speed, hazard=True, move_off=True)
+    assert "MPC_speedless" not in feats and torch.equal(first, second)  # the same weights, the same input
+    with pytest.raises(BidError, match="add move_off"):
+        BIDAgent(tmp_path / "two.pt", move_off_light=True)
+    with pytest.raises(BidError, match="has none"):
+        BIDAgent(shipped, move_off=8, move_off_light=True)

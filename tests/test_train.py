@@ -1014,6 +1014,29 @@ def test_a_move_off_head_starts_as_the_hazard_head_and_fits_as_a_speedless_one(r
     assert "keep one" in err and "\n" not in err
 
 
+def test_a_move_off_head_reading_the_speed_fits_as_the_first_head_refitted(recorded, tmp_path, capsys):
+    """--move-off-speed: the move-off head reads MPC with the speed token, so `--train-only
+    move_off` from a run without it fits exactly the head `--train-only hazard` refits there:
+    a second head of the first head's kind, fitted apart (here with --hazard-green-weight)."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--speed-input", "--forecast", "0.5", "--hazard", "1"]
+    assert bid([*base, "--out", str(tmp_path / "sped")]) == 0
+    start = str(tmp_path / "sped" / "last.pt")
+    assert bid([*base, "--init", start, "--move-off-head", "--move-off-speed", "--train-only", "move_off",
+                "--hazard-green-weight", "4", "--out", str(tmp_path / "two")]) == 0
+    assert bid([*base, "--init", start, "--train-only", "hazard", "--hazard-green-weight", "4",
+                "--out", str(tmp_path / "refit")]) == 0
+    sped, two, refit = (load_checkpoint(tmp_path / run / "last.pt") for run in ("sped", "two", "refit"))
+    assert two["config"]["model"]["move_off_speed"]
+    heads = [k for k in sped["model"] if k.startswith("hazard_head.")]
+    assert all(torch.equal(two["model"]["hazard_move_off." + k[12:]], refit["model"][k]) for k in heads)
+    assert not all(torch.equal(refit["model"][k], sped["model"][k]) for k in heads)
+    assert all(torch.equal(v, two["model"][k]) for k, v in sped["model"].items())  # the first head as it was
+    assert bid([*base, "--move-off-speed", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "add --move-off-head" in err and "\n" not in err
+
+
 def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(recorded, tmp_path, capsys):
     """--hazard-crossing: a second SC map says how near an occupied crossing on the path is, the
     hazard output's fourth column. Started from a run with SC, it starts as that SC with its
