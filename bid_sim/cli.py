@@ -211,68 +211,68 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("how --agent bid drives" if p.prog.endswith("evaluate") else
                              "how the --dagger student drives (as bid evaluate --agent bid drives)")
     g.add_argument("--forecast-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --forecast: brake at least GAIN times as "
-                         "hard as reaching its forecast speed 1 s ahead takes (bid_model/agent.py)")
+                   help="--agent bid with a model trained with --forecast: brake at least GAIN times as "
+                        "hard as reaching its forecast speed 1 s ahead takes (bid_model/agent.py)")
     g.add_argument("--hazard-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
-                         "hard as stopping short of the pedestrian its hazard head sees in the path takes, "
-                         "and stay standing while one is within 8 m (bid_model/agent.py)")
+                   help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                        "hard as stopping short of the pedestrian its hazard head sees in the path takes, "
+                        "and stay standing while one is within 8 m (bid_model/agent.py)")
     g.add_argument("--vehicle-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
-                         "hard as stopping short of the vehicle its hazard head sees in the path takes, "
-                         "once it is nearer than 1 s at the ego's speed + 4 m (bid_model/agent.py)")
+                   help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                        "hard as stopping short of the vehicle its hazard head sees in the path takes, "
+                        "once it is nearer than 1 s at the ego's speed + 4 m (bid_model/agent.py)")
     g.add_argument("--light-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
-                         "hard as stopping 1 m short of the red light's stop line its hazard head sees "
-                         "takes (bid_model/agent.py)")
+                   help="--agent bid with a model trained with --hazard: brake at least GAIN times as "
+                        "hard as stopping 1 m short of the red light's stop line its hazard head sees "
+                        "takes (bid_model/agent.py)")
     g.add_argument("--move-off", type=float, default=None, metavar="S",
-                    help="--agent bid with a model trained with --hazard: once the ego has stood S seconds "
-                         "and the hazard head sees no red light, pedestrian or vehicle within 8 m, "
-                         "move off at accel 0.5 whatever the control head says (bid_model/agent.py)")
+                   help="--agent bid with a model trained with --hazard: once the ego has stood S seconds "
+                        "and the hazard head sees no red light, pedestrian or vehicle within 8 m, "
+                        "move off at accel 0.5 whatever the control head says (bid_model/agent.py)")
     g.add_argument("--move-off-to", type=float, default=None, metavar="MPS",
-                    help="--agent bid with --move-off: the speed moving off drives the ego to before the "
-                         "control head has it again (default 2) (bid_model/agent.py)")
+                   help="--agent bid with --move-off: the speed moving off drives the ego to before the "
+                        "control head has it again (default 2) (bid_model/agent.py)")
     g.add_argument("--move-off-braked", type=float, default=None, metavar="S",
-                    help="--agent bid with --move-off: after a stop the brakes made against the control "
-                         "head, move off once clear for S seconds, not --move-off's (bid_model/agent.py)")
+                   help="--agent bid with --move-off: after a stop the brakes made against the control "
+                        "head, move off once clear for S seconds, not --move-off's (bid_model/agent.py)")
     g.add_argument("--path-memory", type=float, default=None, metavar="S",
-                    help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
-                         "the path within 6 m counts for the brakes and move-off S seconds after the head "
-                         "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
-                         "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
+                   help="--agent bid with the brakes above: a pedestrian or vehicle its hazard head saw in "
+                        "the path within 6 m counts for the brakes and move-off S seconds after the head "
+                        "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
+                        "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
     g.add_argument("--pedestrian-hold", type=float, default=None, metavar="M",
-                    help="--agent bid with --hazard-brake: a pedestrian seen in the path within M metres "
-                         "keeps an ego slower than 2 m/s standing (default 8, as the expert; 0: never "
-                         "held, only stopped 2 m short of) (bid_model/agent.py)")
+                   help="--agent bid with --hazard-brake: a pedestrian seen in the path within M metres "
+                        "keeps an ego slower than 2 m/s standing (default 8, as the expert; 0: never "
+                        "held, only stopped 2 m short of) (bid_model/agent.py)")
     g.add_argument("--max-speed", type=float, default=None, metavar="MPS",
-                    help="--agent bid: brake whenever the ego is faster than MPS m/s, by 1 share of full "
-                         "braking per m/s over (0: no cap) (bid_model/agent.py)")
+                   help="--agent bid: brake whenever the ego is faster than MPS m/s, by 1 share of full "
+                        "braking per m/s over (0: no cap) (bid_model/agent.py)")
     g.add_argument("--turn-speed", type=float, default=None, metavar="MPS",
-                    help="--agent bid: while the command is LEFT or RIGHT (from 20 m before the junction), "
-                         "brake whenever the ego is faster than MPS m/s, as --max-speed does (0: no cap) (bid_model/agent.py)")
+                   help="--agent bid: while the command is LEFT or RIGHT (from 20 m before the junction), "
+                        "brake whenever the ego is faster than MPS m/s, as --max-speed does (0: no cap) (bid_model/agent.py)")
     g.add_argument("--crossing-brake", type=float, default=None, metavar="GAIN",
-                    help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
-                         "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "
-                         "sees takes, and hold an ego slower than 2 m/s within 6 m of it (bid_model/agent.py)")
+                   help="--agent bid with a model trained with --hazard-crossing: brake at least GAIN times as "
+                        "hard as stopping 2 m short of the crossing with a pedestrian on it its hazard head "
+                        "sees takes, and hold an ego slower than 2 m/s within 6 m of it (bid_model/agent.py)")
     g.add_argument("--start-cap", type=float, default=None, metavar="MPS",
-                    help="--agent bid: once the ego has stood 1 s, drive its next 12 m (--start-cap-m) no "
-                         "faster than MPS m/s (0: no cap) (bid_model/agent.py)")
+                   help="--agent bid: once the ego has stood 1 s, drive its next 12 m (--start-cap-m) no "
+                        "faster than MPS m/s (0: no cap) (bid_model/agent.py)")
     g.add_argument("--start-cap-m", type=float, default=None, metavar="M",
-                    help="--agent bid with --start-cap: how many metres of a start it caps (default 12)")
+                   help="--agent bid with --start-cap: how many metres of a start it caps (default 12)")
     g.add_argument("--sc-still", action="store_true", default=None,
-                    help="--agent bid with SC (--hazard-sc): SC reads frame t alone, its change since t-1 "
-                         "zeroed, as a checkpoint trained with --sc-still does (bid_model/agent.py)")
+                   help="--agent bid with SC (--hazard-sc): SC reads frame t alone, its change since t-1 "
+                        "zeroed, as a checkpoint trained with --sc-still does (bid_model/agent.py)")
     g.add_argument("--sc-still-moving", action="store_true", default=None,
-                    help="--agent bid with SC: as --sc-still, but only while the ego moves (0.3 m/s or "
-                         "faster); standing, SC reads both frames as trained (bid_model/agent.py)")
+                   help="--agent bid with SC: as --sc-still, but only while the ego moves (0.3 m/s or "
+                        "faster); standing, SC reads both frames as trained (bid_model/agent.py)")
     g.add_argument("--move-off-sc", action="store_true", default=None,
-                    help="--agent bid with --move-off and SC: move-off waits for the pedestrian and the "
-                         "vehicle SC sees, not the hazard head (which reads the speed input and, standing, "
-                         "a car ahead in an empty street) (bid_model/agent.py)")
+                   help="--agent bid with --move-off and SC: move-off waits for the pedestrian and the "
+                        "vehicle SC sees, not the hazard head (which reads the speed input and, standing, "
+                        "a car ahead in an empty street) (bid_model/agent.py)")
     g.add_argument("--move-off-light", action="store_true", default=None,
-                    help="--agent bid with --move-off and a move-off head (bid train --move-off-head "
-                         "--move-off-speed): move-off waits for that head's red light and the first head's "
-                         "pedestrian and vehicle (bid_model/agent.py)")
+                   help="--agent bid with --move-off and a move-off head (bid train --move-off-head "
+                        "--move-off-speed): move-off waits for that head's red light and the first head's "
+                        "pedestrian and vehicle (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:
