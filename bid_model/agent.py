@@ -206,6 +206,11 @@ class BIDAgent:
     head's pedestrian and vehicle instead (a head reading the speed, model.move_off_speed, fitted
     to read a green light at the stop line as none: `bid train --hazard-green-weight`), so that
     the head the brakes read, pedestrian and vehicle, stays as it was (docs/experiments.md).
+    vehicle_second_head: with a second head (model.move_off_head, `bid train --move-off-head
+    --move-off-speed`), the vehicle the brakes and move-off read is that head's (beside SC's),
+    the pedestrian and the red light still the first head's: a head refitted for vehicles near
+    a moving ego (`bid record --late-brake`, `bid train --hazard-vehicle-moving-weight`) leaves
+    the others as they were (docs/experiments.md).
     move_off_to: m/s; with move_off, the speed it moves the ego off to (START_MPS when None). A
     control head that waits where the expert would go brakes a moved-off ego back to standing
     from START_MPS; moved off to 4 m/s, crowded routes finish more often, with more contacts
@@ -258,7 +263,8 @@ class BIDAgent:
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
                  start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None,
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
-                 turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False):
+                 turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
+                 vehicle_second_head: bool = False):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -320,6 +326,16 @@ class BIDAgent:
                            f"{'add move_off' if not move_off else f'{checkpoint} has none (bid train --move-off-head)'}, "
                            "or drop it")
         self.move_off_light = move_off_light
+        if vehicle_second_head and not self.config.model.move_off_head:
+            raise BidError(f"vehicle_second_head reads the vehicle of a second head; {checkpoint} has none "
+                           "(bid train --move-off-head --move-off-speed), or drop it")
+        if vehicle_second_head and (move_off_light or move_off_sc):
+            raise BidError("vehicle_second_head and move_off_light or move_off_sc read the second head or SC "
+                           "for move-off two ways; keep one")
+        if vehicle_second_head and not (vehicle_brake or move_off):
+            raise BidError("vehicle_second_head is the vehicle the vehicle brake and move-off read; add "
+                           "vehicle_brake or move_off, or drop it")
+        self.vehicle_second_head = vehicle_second_head
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -386,9 +402,10 @@ class BIDAgent:
         by_forecast = self.forecast_brake > 0
         by_hazard = (self.hazard_brake > 0 or self.vehicle_brake > 0 or self.light_brake > 0
                      or self.move_off_steps > 0 or self.crossing_brake > 0)
-        # move-off's own head, unless move_off_sc reads SC in its place (and it gives no red light)
-        second = (self.move_off_steps > 0 and self.config.model.move_off_head
-                  and (self.move_off_light or not self.move_off_sc))
+        # move-off's own head, unless move_off_sc reads SC in its place (and it gives no red light);
+        # or the vehicle's for both the brakes and move-off
+        second = self.vehicle_second_head or (self.move_off_steps > 0 and self.config.model.move_off_head
+                                              and (self.move_off_light or not self.move_off_sc))
         out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard,
                          hazard_apart=self.move_off_sc, move_off=second)
         control, *extra = out if isinstance(out, tuple) else (out,)
@@ -407,9 +424,12 @@ class BIDAgent:
             k = len(PATH_KINDS)
             if second:
                 own = tuple(float(x) for x in merged(extra.pop(0))[0])
-                # its red light, the first head's pedestrian and vehicle; else the other way round
-                clear_near = ((*near[:k], own[k], *near[k + 1:]) if self.move_off_light
-                              else (*own[:k], *near[k:]))
+                veh = PATH_KINDS.index("vehicle")
+                if self.vehicle_second_head:  # its vehicle, the first head's others, for everything
+                    near = clear_near = (*near[:veh], own[veh], *near[veh + 1:])
+                else:  # its red light, the first head's pedestrian and vehicle; else the other way round
+                    clear_near = ((*near[:k], own[k], *near[k + 1:]) if self.move_off_light
+                                  else (*own[:k], *near[k:]))
             if self.move_off_sc:  # SC's pedestrian and vehicle, the red light as above
                 clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *clear_near[k:])
             if self.memory is not None:

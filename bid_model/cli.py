@@ -66,6 +66,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard, weigh a frame with a pedestrian in the path W times more where "
                         "the ego moves (0.3 m/s or faster): the expert has mostly stopped before one is "
                         "near, so its recordings hold few (1 by default)")
+    p.add_argument("--hazard-vehicle-moving-weight", type=float, default=None, metavar="W",
+                   help="with --hazard, weigh a frame with a vehicle in the path W times more where the "
+                        "ego moves (0.3 m/s or faster): the expert keeps its distance, so its recordings "
+                        "hold few close approaches (1 by default; bid record --late-brake records some)")
     p.add_argument("--hazard-green-weight", type=float, default=None, metavar="W",
                    help="with --hazard, weigh W times the red-light entry (none) of a frame where the ego "
                         "stands at a green light's stop line (3 m or nearer, or past it): the expert stands "

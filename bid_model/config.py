@@ -189,6 +189,8 @@ class TrainConfig:
     # Further weight of the red-light entry (none there) of a frame where the ego stands at a green
     # light's stop line (hazards.AT_LINE_M; train.hazard_weights).
     hazard_green_weight: float = 1.0
+    # Further weight of a frame with a vehicle in the path while the ego moves (train.hazard_weights).
+    hazard_vehicle_moving_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (losses.l1_loss)

@@ -133,14 +133,15 @@ def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Ten
 def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: float = 1.0,
                    command: torch.Tensor | None = None, moving_weight: float = 1.0,
                    speed_mps: torch.Tensor | None = None, green_weight: float = 1.0,
-                   green_m: torch.Tensor | None = None) -> torch.Tensor:
+                   green_m: torch.Tensor | None = None, vehicle_moving_weight: float = 1.0) -> torch.Tensor:
     """(B, K) weights of the hazard targets' entries: one with an actor in the path (target > 0)
     weighs `pos_weight`; with `command` (B, n one-hot) a pedestrian in the path while turning
     (LEFT, RIGHT) `turn_weight` times more again; with `speed_mps` (B,) one in the path while
     the ego moves (MOVING_MPS or faster) `moving_weight` times more again; with `green_m` ((B,),
     hazards.green_distance) and `speed_mps`, the red-light entry of a standing ego at a green
     line (AT_LINE_M or nearer) `green_weight` times: the expert stands there almost only at
-    red, and the light output learnt "standing at the line" for a red light."""
+    red, and the light output learnt "standing at the line" for a red light; with `speed_mps`
+    a vehicle in the path while the ego moves `vehicle_moving_weight` times more again."""
     weight = torch.where(target > 0, pos_weight, 1.0)
     light = KINDS.index("red_light")
     if green_m is not None and speed_mps is not None and green_weight != 1.0 and target.shape[1] > light:
@@ -154,13 +155,18 @@ def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: f
     if speed_mps is not None and moving_weight != 1.0:
         approaching = (target[:, ped] > 0) & (speed_mps.reshape(-1) >= MOVING_MPS)
         weight[:, ped] *= torch.where(approaching, moving_weight, 1.0)
+    if speed_mps is not None and vehicle_moving_weight != 1.0:
+        veh = KINDS.index("vehicle")
+        approaching = (target[:, veh] > 0) & (speed_mps.reshape(-1) >= MOVING_MPS)
+        weight[:, veh] *= torch.where(approaching, vehicle_moving_weight, 1.0)
     return weight
 
 
 def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
                 turn_weight: float = 1.0, command: torch.Tensor | None = None,
                 moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
-                green_weight: float = 1.0, green_m: torch.Tensor | None = None) -> torch.Tensor:
+                green_weight: float = 1.0, green_m: torch.Tensor | None = None,
+                vehicle_moving_weight: float = 1.0) -> torch.Tensor:
     """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
     batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
     about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
@@ -169,16 +175,18 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
     turning, the ego meets many more waiting on the kerb beside its path than in it.
     `moving_weight` weighs those in the path of a moving ego more: the expert has mostly
     stopped before a pedestrian is near, so such frames are rare in its recordings.
-    `green_weight` weighs the red-light entry of a standing ego at a green line."""
+    `green_weight` weighs the red-light entry of a standing ego at a green line,
+    `vehicle_moving_weight` the vehicles in the path of a moving ego."""
     weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
-                            green_weight, green_m)
+                            green_weight, green_m, vehicle_moving_weight)
     return (weight * (pred.float() - target).abs()).sum() / weight.sum()
 
 
 def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
                   turn_weight: float = 1.0, command: torch.Tensor | None = None,
                   moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
-                  green_weight: float = 1.0, green_m: torch.Tensor | None = None) -> torch.Tensor:
+                  green_weight: float = 1.0, green_m: torch.Tensor | None = None,
+                  vehicle_moving_weight: float = 1.0) -> torch.Tensor:
     """Loss of SC with presence (areas.SC; out (B, 2K): nearness, then logits) against the
     nearness targets (B, K): the logits' binary cross-entropy on "one is in the path", its
     entries weighted by hazard_weights (it says yes where it judges the odds above 1 / (1 +
@@ -187,7 +195,8 @@ def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1
     k = target.shape[1]
     near, logit = out[:, :k].float(), out[:, k:].float()
     present = target > 0
-    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps)
+    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
+                            vehicle_moving_weight=vehicle_moving_weight)
     bce = nn.functional.binary_cross_entropy_with_logits(logit, present.float(), reduction="none")
     distance = (near - target).abs()[present].mean() if present.any() else near.sum() * 0.0
     return (weight * bce).sum() / weight.sum() + distance
@@ -549,7 +558,7 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
             green_m = batch["green_m"].to(device) if "green_m" in batch else None
             weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps,
-                       tc.hazard_green_weight, green_m)
+                       tc.hazard_green_weight, green_m, tc.hazard_vehicle_moving_weight)
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if second is not None:
                 loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near[:, :own], *weights)
@@ -929,6 +938,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-turn-weight": args.hazard_turn_weight,
              "--hazard-moving-weight": args.hazard_moving_weight, "--hazard-ahead": args.hazard_ahead,
              "--hazard-green-weight": args.hazard_green_weight,
+             "--hazard-vehicle-moving-weight": args.hazard_vehicle_moving_weight,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
@@ -1015,7 +1025,9 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
                                 ("--hazard-moving-weight", "hazard_moving_weight",
                                  "pedestrians in the path of a moving ego"),
                                 ("--hazard-green-weight", "hazard_green_weight",
-                                 "the red-light entry of a standing ego at a green line")):
+                                 "the red-light entry of a standing ego at a green line"),
+                                ("--hazard-vehicle-moving-weight", "hazard_vehicle_moving_weight",
+                                 "vehicles in the path of a moving ego")):
         weight = getattr(args, field)
         if weight is None:
             continue

@@ -92,7 +92,7 @@ def _record(args: argparse.Namespace) -> int:
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
                      progress=not args.json, perturb=args.perturb, ray_address=args.ray,
-                     dagger=args.dagger, bends=args.bends,
+                     dagger=args.dagger, bends=args.bends, late_brake=args.late_brake,
                      dagger_options=_drive_options(args, None if args.dagger else
                                                    "is how the --dagger student drives; give --dagger CHECKPOINT or drop it"))
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
@@ -135,7 +135,8 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
              "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
-             "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light}
+             "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light,
+             "vehicle_second_head": args.vehicle_second_head}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -273,6 +274,10 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="--agent bid with --move-off and a move-off head (bid train --move-off-head "
                         "--move-off-speed): move-off waits for that head's red light and the first head's "
                         "pedestrian and vehicle (bid_model/agent.py)")
+    g.add_argument("--vehicle-second-head", action="store_true", default=None,
+                   help="--agent bid with --vehicle-brake or --move-off and a second head (bid train "
+                        "--move-off-head --move-off-speed): the vehicle they read is that head's, the "
+                        "pedestrian and red light the first head's (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -334,6 +339,10 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
                      help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
     _add_drive_arguments(rec)
+    rec.add_argument("--late-brake", type=float, default=0.0, metavar="SHARE",
+                     help="with --dagger: the teacher brakes for a car ahead of the student only once stopping "
+                          "1 m short of it takes this share of full braking (0.5; default 0: at once), so "
+                          "that the recordings hold the student near cars at speed")
     rec.add_argument("--bends", action="store_true",
                      help="only routes that take a bend of the road (a corner, driven under LANEFOLLOW) "
                           "in their first 250 m; few random routes do")

@@ -422,8 +422,9 @@ class Expert:
 
     town: the town (or its name) when EpisodeInfo.town alone does not resolve it.
     After each act(), ``command`` holds the navigation command (CARLA RoadOption 1..6),
-    ``reason`` what limited the speed and ``lane_change`` the state of a lane change (for
-    inspection and tests).
+    ``reason`` what limited the speed, ``gap_m`` how far ahead of the front bumper that was (inf
+    for the speed itself) and ``lane_change`` the state of a lane change (for inspection, tests
+    and bid_sim.perturb.Dagger's late braking).
     """
 
     def __init__(self, config: ExpertConfig = ExpertConfig(), town: Town | str | None = None):
@@ -436,6 +437,7 @@ class Expert:
         self.plan: _Plan | None = None
         self.command = LANEFOLLOW
         self.reason = ""
+        self.gap_m = math.inf
         self.speed_limit_mps = 11.18
         self.nudge_m = 0.0  # sideways shift of the path (+ left) to pass a standing pedestrian
         self.lane_change = ""  # '' | 'waiting' (for a gap) | 'changing' (its own change across)
@@ -458,6 +460,7 @@ class Expert:
         self.plan = _build_plan(info.route.polyline, info.route, self.facts, self.cfg, self.speed_limit_mps)
         self.command = LANEFOLLOW
         self.reason = ""
+        self.gap_m = math.inf
         self._amber = {}
         self._lc = {}
         self._stalled = {}
@@ -492,13 +495,13 @@ class Expert:
         cons += self._junction(snap, s_c, s_f, v, cons)
         cons.append(_Constraint(plan.length_m + 2.0 - s_f, 0.0, 0.0, 0.0, "route end"))
         free = self.cfg.accel_mps2 * (1.0 - (v / max(v0, 0.1)) ** 4)
-        a, self.reason = free, "speed"
+        a, self.reason, self.gap_m = free, "speed", math.inf
         for c in cons:
             ac = _idm(v, v0, c.gap_m, c.speed_mps, self.cfg, c.s0_m, c.headway_s)
             if ac < a:
                 a = ac
                 if ac < free - 0.1:
-                    self.reason = c.reason
+                    self.reason, self.gap_m = c.reason, c.gap_m
         a = min(max(a, -self.params.max_brake_mps2), self.cfg.accel_mps2)
         if v < 0.05 and a < 0.1:
             a = min(a, -1.0)  # hold the brake at a standstill

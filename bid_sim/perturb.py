@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from bid_sim.agents import Agent, EpisodeInfo, Observation
-from bid_sim.ego import Control
+from bid_sim.ego import Control, EgoParams
 from bid_sim.errors import BidError
 
 PULSE_STEPS = (5, 16)  # duration, 0.5 to 1.5 s at 10 Hz
@@ -79,6 +79,7 @@ STALL_STEPS = 15  # the student stands while the teacher would go: 1.5 s, then t
 GIVE_UP_STEPS = 50  # 5 s standing still off the route: a dead end (say, past a turn, facing a wall)
 GIVE_UP_LATERAL_M = 0.75
 GIVE_UP_HEADING_RAD = 0.17  # 10 degrees
+LATE_SHORT_M = 1.0  # late braking: the stop it judges is this far short of the car ahead
 
 
 class Dagger:
@@ -94,14 +95,28 @@ class Dagger:
     accel is the lower of the two while the teacher brakes), so red lights and cars ahead do
     not end an episode in a crash. `student_share` is the share of steps the student drove.
 
+    With that braking the student never comes near a car at speed, and the recordings hold few
+    such frames to learn "a car close ahead" from (docs/experiments.md). `late_brake` (a share of
+    full braking, 0 for off) holds the teacher's braking for a vehicle in the path back until
+    stopping LATE_SHORT_M short of it would take at least that share (v² / 2(gap − LATE_SHORT_M)):
+    until then the student's own brakes decide. The teacher must say what it brakes for
+    (bid_sim.expert.Expert's `reason` and `gap_m`). `late_steps` counts the steps held back.
+
     A forward-only car can strand itself (past a missed turn, nose against a building): the
     expert then stands with the wheel at full lock, and nothing of that is worth learning.
     After GIVE_UP_STEPS standing still off the route, `gave_up` is set and the episode ends
     (run_episode stops on it) rather than record a minute of a stuck car.
     """
 
-    def __init__(self, student: Agent, teacher: Agent):
+    def __init__(self, student: Agent, teacher: Agent, late_brake: float = 0.0):
         self.student, self.teacher = student, teacher
+        if not 0.0 <= late_brake <= 1.0:
+            raise BidError(f"late_brake is a share of full braking, from 0 (off) to 1; got {late_brake}")
+        if late_brake and not (hasattr(teacher, "reason") and hasattr(teacher, "gap_m")):
+            raise BidError("late_brake needs a teacher that says what it brakes for (the expert); "
+                           "record with --agent expert, or drop it")
+        self.late_brake = late_brake
+        self.late_steps = 0
         self.label: Control | None = None
         self._takeover = 0  # steps of teacher control left (at least)
         self._stall = self._stuck = 0
@@ -118,6 +133,7 @@ class Dagger:
         self.label = None
         self._takeover = self._stall = self._stuck = 0
         self._steps = self._student_steps = 0
+        self.late_steps = 0
         self.gave_up = False
 
     def act(self, obs: Observation) -> Control:
@@ -140,5 +156,11 @@ class Dagger:
         if self._takeover:
             return teacher
         self._student_steps += 1
-        accel = min(mine.accel, teacher.accel) if teacher.accel < 0.0 else mine.accel
+        brakes = teacher.accel < 0.0
+        if brakes and self.late_brake and self.teacher.reason.startswith("vehicle "):
+            room = max(self.teacher.gap_m - LATE_SHORT_M, 0.05)
+            if obs.speed_mps ** 2 / (2.0 * room) < self.late_brake * EgoParams.max_brake_mps2:
+                brakes = False  # not yet: the student's own brakes decide
+                self.late_steps += 1
+        accel = min(mine.accel, teacher.accel) if brakes else mine.accel
         return Control(mine.steer, accel)

@@ -46,6 +46,7 @@ class EpisodeSpec:
     perturb: float = 0.0  # share of driving time with steering noise (bid_sim.perturb)
     dagger: str | None = None  # checkpoint of a BID that drives while `agent` labels (bid_sim.perturb.Dagger)
     dagger_options: dict | None = None  # how that BID drives: BIDAgent's options, as `bid evaluate` gives them
+    late_brake: float = 0.0  # the teacher brakes for a car ahead of the student only this late (Dagger's late_brake)
 
     @property
     def name(self) -> str:
@@ -55,7 +56,7 @@ class EpisodeSpec:
 def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
                   seed: int, agent: str = "expert", max_steps: int | None = None,
                   perturb: float = 0.0, dagger: str | None = None, bends: bool = False,
-                  dagger_options: dict | None = None) -> list[EpisodeSpec]:
+                  dagger_options: dict | None = None, late_brake: float = 0.0) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -73,7 +74,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
         raise BidError(f"{t.name} yields only {len(routes)} {kind}; record fewer episodes")
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
-                        seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options)
+                        seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options, late_brake)
             for i in range(episodes)]
 
 
@@ -82,7 +83,8 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
     plans: which route, which seed, who drove and how."""
     return {"route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->{spec.route.goal_edge}@{spec.route.goal_pos_m}",
             "seed": str(spec.seed), "agent": spec.agent, "perturb": str(spec.perturb),
-            "dagger": Path(spec.dagger).name if spec.dagger else "", "dagger_drive": drive_words(spec.dagger_options)}
+            "dagger": Path(spec.dagger).name if spec.dagger else "", "dagger_drive": drive_words(spec.dagger_options),
+            "late_brake": f"{spec.late_brake:g}" if spec.late_brake else ""}
 
 
 def drive_words(options: dict | None) -> str:
@@ -97,10 +99,10 @@ def drive_words(options: dict | None) -> str:
 def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
     recording) only if it is the episode `spec` plans: another --seed, --perturb, --dagger (or
-    how its student drives), --agent or town would otherwise mix two recordings under one
+    how its student drives, or --late-brake), --agent or town would otherwise mix two recordings under one
     folder unnoticed. `town`, `tag`: the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
-    theirs = {**theirs, "dagger": theirs.get("dagger", ""), "dagger_drive": theirs.get("dagger_drive", "")}
+    theirs = {**theirs, **{k: theirs.get(k, "") for k in ("dagger", "dagger_drive", "late_brake")}}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
     if theirs.get("town") != town.name:
@@ -145,7 +147,8 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
 
         facts["dagger"] = Path(spec.dagger).name  # the student that drove; `agent` labelled
         facts["dagger_drive"] = drive_words(spec.dagger_options)  # and how it drove
-        agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent)
+        facts["late_brake"] = plan_facts(spec)["late_brake"]  # and how late the teacher braked for cars
+        agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent, spec.late_brake)
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
@@ -158,21 +161,25 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
            "infractions": [i.to_dict() for i in result.infractions]}
     if spec.dagger:
         end["student_share"] = round(agent.student_share, 4)
+        end["late_steps"] = agent.late_steps
     writer.finish(end)
     return {"name": spec.name, "frames": writer.frames, "status": result.status,
             "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
-            **({"student_share": end["student_share"]} if spec.dagger else {})}
+            **({"student_share": end["student_share"], "late_steps": end["late_steps"]} if spec.dagger else {})}
 
 
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
-           dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None) -> dict:
+           dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None,
+           late_brake: float = 0.0) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
     bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
     dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger);
     dagger_options: how it drives (bid_model.agent.BIDAgent's options, as `bid evaluate` passes
-    them), so that the student visits the states it visits when evaluated so.
+    them), so that the student visits the states it visits when evaluated so; late_brake: the
+    teacher brakes for a car ahead of it only once stopping 1 m short takes that share of full
+    braking (bid_sim.perturb.Dagger), so that the student comes near cars at speed.
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
@@ -200,10 +207,16 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
 
         load_agent("bid", dagger, dagger_options)  # a damaged or foreign checkpoint, or an option it lacks, fails here
         dagger = str(Path(dagger).resolve())
-    elif dagger_options:
-        raise BidError("drive options are how the --dagger student drives; give --dagger CHECKPOINT or drop them")
+    elif dagger_options or late_brake:
+        what = "drive options are how the --dagger student drives" if dagger_options else \
+            "--late-brake is how late the teacher brakes for the --dagger student"
+        raise BidError(f"{what}; give --dagger CHECKPOINT or drop them")
+    if not 0.0 <= late_brake <= 1.0:
+        raise BidError(f"--late-brake is a share of full braking, from 0 (off) to 1; got {late_brake}")
+    if late_brake and agent != "expert":
+        raise BidError(f"--late-brake needs the expert as the teacher (it says what it brakes for); got --agent {agent}")
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends,
-                          dagger_options)
+                          dagger_options, late_brake)
     plan_town = resolve_town(town)
     plan_tag = net_tag(plan_town)
     for s in specs:
@@ -242,7 +255,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
             "frames_per_s": round(frames / wall, 1) if wall > 0 else 0.0,
             "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})},
             **({"student_share": round(sum(d["student_share"] for d in done) / len(done), 3)}
-               if dagger and done else {})}
+               if dagger and done else {}),
+            **({"late_steps": sum(d["late_steps"] for d in done)} if late_brake else {})}
 
 
 def describe(summary: dict) -> str:
@@ -253,6 +267,8 @@ def describe(summary: dict) -> str:
         lines.append("  endings: " + ", ".join(f"{k} {v}" for k, v in summary["statuses"].items()))
     if "student_share" in summary:
         lines.append(f"  the student drove {100 * summary['student_share']:.0f} % of the steps, the expert the rest")
+    if "late_steps" in summary:
+        lines.append(f"  the expert held back its braking for a car ahead {summary['late_steps']} steps (--late-brake)")
     lines += [f"  failed {name}: {msg}" for name, msg in summary["failed"]]
     return "\n".join(lines)
 

@@ -792,3 +792,54 @@ def test_move_off_light_waits_for_the_move_off_heads_red_light_and_the_first_hea
         BIDAgent(tmp_path / "two.pt", move_off_light=True)
     with pytest.raises(BidError, match="has none"):
         BIDAgent(shipped, move_off=8, move_off_light=True)
+
+
+def test_vehicle_second_head_brakes_and_moves_off_by_the_second_heads_vehicle(tmp_path):
+    """With `vehicle_second_head` (a second head refitted for vehicles near a moving ego), the
+    vehicle brake and move-off read that head's vehicle; the pedestrian and red light still the
+    first head's."""
+    import numpy as np
+    import torch
+
+    from bid_model.agent import MOVE_OFF_ACCEL
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    two = load_checkpoint(shipped)
+    two["config"]["model"].update(move_off_head=True, move_off_speed=True)
+    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
+                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
+    save_checkpoint(tmp_path / "two.pt", two)
+    frame = np.random.default_rng(5).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+
+    def drive(agent: BIDAgent, first: tuple[float, ...], second: tuple[float, ...], speed: float,
+              control_accel: float) -> list[float]:
+        """(pedestrian, vehicle, red light) each head reads: three steps' accel at `speed`."""
+        with torch.no_grad():
+            agent.model.areas["CPC"].head[-1].weight.zero_()
+            agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, control_accel]))
+            agent.model.hazard_sc.priority[-1].weight.zero_()  # SC sees nothing
+            agent.model.hazard_sc.priority[-1].bias.zero_()
+            for head, near in ((agent.model.hazard_head, first), (agent.model.hazard_move_off, second)):
+                head[-1].weight.zero_()
+                head[-1].bias.copy_(torch.tensor(near))
+        agent.reset(None)
+        obs = Observation(frame, frame, 4, speed, None)
+        return [agent.act(obs).accel for _ in range(3)]
+
+    brakes = BIDAgent(tmp_path / "two.pt", vehicle_brake=1, hazard_brake=1, light_brake=1, vehicle_second_head=True)
+    assert min(drive(brakes, (0.0, 0.0, 0.0), (0.0, 0.9, 0.0), 6.0, 100.0)) < -0.5  # its vehicle
+    assert drive(brakes, (0.0, 0.9, 0.0), (0.0, 0.0, 0.0), 6.0, 100.0) == pytest.approx([1.0] * 3)  # not the first's
+    assert min(drive(brakes, (0.9, 0.0, 0.0), (0.0, 0.0, 0.0), 6.0, 100.0)) < -0.5  # the first's pedestrian
+    assert min(drive(brakes, (0.0, 0.0, 0.9), (0.0, 0.0, 0.0), 6.0, 100.0)) < -0.5  # and red light
+    assert drive(brakes, (0.0, 0.0, 0.0), (0.9, 0.0, 0.9), 6.0, 100.0) == pytest.approx([1.0] * 3)  # not its
+    mover = BIDAgent(tmp_path / "two.pt", move_off=0.3, vehicle_second_head=True)
+    moves, waits = pytest.approx([-1.0, -1.0, MOVE_OFF_ACCEL], abs=1e-5), pytest.approx([-1.0] * 3, abs=1e-5)
+    assert drive(mover, (0.0, 0.9, 0.0), (0.0, 0.0, 0.0), 0.0, -100.0) == moves
+    assert drive(mover, (0.0, 0.0, 0.0), (0.0, 0.9, 0.0), 0.0, -100.0) == waits
+    assert drive(mover, (0.0, 0.0, 0.9), (0.0, 0.0, 0.0), 0.0, -100.0) == waits
+    for kwargs, says in (({"vehicle_brake": 1}, None), ({"move_off": 8, "move_off_light": True}, "keep one"),
+                         ({}, "add vehicle_brake or move_off")):
+        with pytest.raises(BidError, match=says or "has none"):
+            BIDAgent(shipped if says is None else tmp_path / "two.pt", vehicle_second_head=True, **kwargs)

@@ -38,10 +38,12 @@ class Watched(Expert):
         super().__init__(**kw)
         self.hook = hook
         self.seen = []
+        self.gaps = []  # gap_m at every step
 
     def act(self, obs):
         control = super().act(obs)
         self.seen.append((obs.snapshot, control, self.command, self.reason))
+        self.gaps.append(self.gap_m)
         if self.hook is not None:
             self.hook(obs.snapshot.step, obs.snapshot)
         return control
@@ -93,6 +95,17 @@ def test_follows_a_slower_car_without_collision(town02):
     assert speeds[-1] == pytest.approx(4.0, abs=0.6)  # ... then follows at the lead's speed
     assert 4.0 < gaps[-1] < 15.0
     assert any(reason.startswith("vehicle slow") for _, _, _, reason in agent.seen[-50:])
+    # gap_m: how far ahead what limits the speed is (the lead's rear, from the front bumper).
+    following = [(gap, snap) for (snap, _, _, reason), gap in zip(agent.seen, agent.gaps, strict=True)
+                 if reason == "vehicle slow"]
+    assert following
+    off = []
+    for gap, snap in following:
+        x, y = snap.vehicles.xy[snap.vehicles.ids.index("slow")]
+        off.append(gap - (math.hypot(x - snap.ego.x_m, y - snap.ego.y_m) - 4.6))
+    assert np.median(np.abs(off)) < 0.01 and max(np.abs(off)) < 1.5  # along the route, not the chord, on a bend
+    assert all(gap == math.inf for (_, _, _, reason), gap in zip(agent.seen, agent.gaps, strict=True)
+               if reason == "speed")
 
 
 def test_waits_for_a_pedestrian_in_its_path(town02):

@@ -2,6 +2,8 @@
 expert's, and the episode records the label, not what the car executed; under Dagger a
 student drives, the expert labels and takes the wheel when the student strays."""
 
+import json
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,7 +14,7 @@ from bid_sim.ego import Control, EgoParams
 from bid_sim.episode import run_episode
 from bid_sim.errors import BidError
 from bid_sim.expert import Expert
-from bid_sim.perturb import GIVE_UP_STEPS, PULSE_STEER, Dagger, Perturbed
+from bid_sim.perturb import GIVE_UP_STEPS, LATE_SHORT_M, PULSE_STEER, Dagger, Perturbed
 
 
 def _info(seed: int) -> EpisodeInfo:
@@ -146,6 +148,50 @@ def test_dagger_gives_up_standing_off_the_route_only():
     assert not agent.gave_up
 
 
+class _Braking:
+    """A teacher that brakes for what `reason` names, `gap_m` ahead, as the expert says it."""
+
+    def __init__(self):
+        self.reason, self.gap_m = "speed", math.inf
+
+    def reset(self, info):
+        pass
+
+    def act(self, obs):
+        return Control(0.0, 0.3 if self.reason == "speed" else -0.6)
+
+
+def _moving(speed_mps: float) -> Observation:
+    ego = SimpleNamespace(lateral_m=0.0, heading_error_rad=0.0)
+    return Observation(None, None, 2, speed_mps, SimpleNamespace(ego=ego))
+
+
+def test_dagger_late_brake_holds_the_teachers_braking_for_a_car_back_until_it_is_needed():
+    """late_brake: braking for a vehicle in the path is the student's own until stopping
+    LATE_SHORT_M short of it takes that share of full braking; a red light is braked for at once."""
+    teacher = _Braking()
+    agent = Dagger(Scripted(lambda step, obs: Control(0.1, 0.4)), teacher, late_brake=0.5)
+    agent.reset(_info(0))
+    # At 4 m/s half of full braking (4 m/s²) stops in 2 m: held back beyond 3 m, braked within.
+    edge = LATE_SHORT_M + 4.0 ** 2 / (2 * 0.5 * EgoParams.max_brake_mps2)
+    steps = [("vehicle v7", 12.0, 0.4), ("vehicle v7", edge + 0.1, 0.4), ("vehicle v7", edge - 0.1, -0.6),
+             ("red light", 12.0, -0.6), ("pedestrian p1", 30.0, -0.6), ("speed", math.inf, 0.4)]
+    for reason, gap, executed in steps:
+        teacher.reason, teacher.gap_m = reason, gap
+        assert agent.act(_moving(4.0)) == Control(0.1, executed), reason
+        assert agent.label.accel == (0.3 if reason == "speed" else -0.6)
+    assert agent.late_steps == 2 and agent.student_share == 1.0
+    agent.reset(_info(0))
+    assert agent.late_steps == 0
+    on_time = Dagger(Scripted(lambda step, obs: Control(0.1, 0.4)), teacher)
+    teacher.reason, teacher.gap_m = "vehicle v7", 12.0
+    assert on_time.act(_moving(4.0)).accel == -0.6  # without it the teacher brakes at once
+    with pytest.raises(BidError, match="from 0 \\(off\\) to 1"):
+        Dagger(Expert(), teacher, late_brake=1.5)
+    with pytest.raises(BidError, match="what it brakes for"):
+        Dagger(Expert(), Scripted(lambda step, obs: Control(0.0, 0.0)), late_brake=0.5)
+
+
 class _Quitter:
     def reset(self, info):
         self.steps = 0
@@ -201,3 +247,31 @@ def test_bid_record_dagger_drives_the_student_with_the_drive_flags_given(tmp_pat
     assert "dagger_drive '--max-speed 1 --move-off 8' here, '--max-speed 1' planned" in capsys.readouterr().err
     assert bid(["record", "--town", "02", "--episodes", "1", "--light-brake", "1", "--out", str(tmp_path / "x")]) == 2
     assert "--light-brake is how the --dagger student drives; give --dagger" in capsys.readouterr().err
+
+
+def test_bid_record_late_brake_is_recorded_and_kept_to(tmp_path, capsys):
+    """bid record --dagger --late-brake: the recordings say how late the teacher braked, and a
+    folder is finished only with the same; without --dagger, or with another teacher, refused."""
+    from bid_model.recordings import _index, find_recordings
+    from bid_sim.cli import main as bid
+
+    def record(out, *flags):
+        return bid(["record", "--town", "02", "--episodes", "1", "--densities", "normal", "--weathers", "ClearNoon",
+                    "--max-steps", "30", "--workers", "1", *flags, "--out", str(out), "--json"])
+
+    late = ("--dagger", "checkpoints/bid_small.pt", "--late-brake", "0.5")
+    assert record(tmp_path / "late", *late) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["late_steps"] >= 0 and summary["recorded"] == 1
+    files, _ = find_recordings(tmp_path / "late")
+    assert _index(files, keep_jpeg=False).facts[0]["late_brake"] == "0.5"
+    assert record(tmp_path / "late", "--dagger", "checkpoints/bid_small.pt") == 2
+    assert "late_brake '0.5' here, 'none' planned" in capsys.readouterr().err
+    assert record(tmp_path / "late", *late) == 0  # the same plan: found done
+    capsys.readouterr()
+    for flags, says in ((("--late-brake", "0.5"), "--late-brake is how late the teacher brakes for the --dagger"),
+                        ((*late[:2], "--late-brake", "2"), "a share of full braking, from 0 (off) to 1; got 2"),
+                        ((*late, "--agent", "lanefollow"), "--late-brake needs the expert as the teacher")):
+        assert record(tmp_path / "x", *flags) == 2, flags
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err

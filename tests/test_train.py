@@ -716,6 +716,27 @@ def test_hazard_moving_weight_weighs_pedestrians_in_the_path_of_a_moving_ego():
     assert presence_loss(out, target, 1.0, moving_weight=4.0, speed_mps=speed) > presence_loss(out, target, 1.0) + 0.1
 
 
+def test_hazard_vehicle_moving_weight_weighs_vehicles_in_the_path_of_a_moving_ego():
+    """--hazard-vehicle-moving-weight: a vehicle in the path while the ego moves weighs that much
+    more, on top of the others; a vehicle met standing and a pedestrian met moving as before."""
+    from bid_model.hazards import MOVING_MPS
+    from bid_model.train import hazard_loss, hazard_weights, presence_loss
+
+    target = torch.tensor([[0.0, 0.6], [0.0, 0.6], [0.5, 0.0], [0.0, 0.0]])
+    speed = torch.tensor([MOVING_MPS, 0.0, 5.0, 5.0])
+    weight = hazard_weights(target, 2.0, speed_mps=speed, vehicle_moving_weight=3.0)
+    assert weight.tolist() == [[1.0, 6.0], [1.0, 2.0], [2.0, 1.0], [1.0, 1.0]]
+    both = hazard_weights(target, 2.0, moving_weight=5.0, speed_mps=speed, vehicle_moving_weight=3.0)
+    assert both.tolist() == [[1.0, 6.0], [1.0, 2.0], [10.0, 1.0], [1.0, 1.0]]
+    pred = torch.zeros(4, 2)
+    want = (0.6 * 6 + 0.6 * 2 + 0.5 * 2) / float(weight.sum())
+    assert hazard_loss(pred, target, 2.0, speed_mps=speed, vehicle_moving_weight=3.0) == pytest.approx(want)
+    out = torch.zeros(4, 4)
+    out[:, 3] = -2.0  # "no vehicle in the path" everywhere: wrong most where the moving ego meets one
+    assert presence_loss(out, target, 1.0, speed_mps=speed, vehicle_moving_weight=3.0) > \
+        presence_loss(out, target, 1.0) + 0.1
+
+
 def test_hazard_green_weight_weighs_the_red_light_entry_of_a_standing_ego_at_a_green_line(recorded):
     """--hazard-green-weight: the red-light entry (none there) of a frame where the ego stands at
     a green light's stop line (AT_LINE_M or nearer, or past it) weighs that much more; moving,
@@ -765,7 +786,10 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-turn-weight", "3"]))
     assert run.train.hazard_turn_weight == 3.0 and run.train.hazard_moving_weight == 1.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-moving-weight", "6"]))
-    assert run.train.hazard_moving_weight == 6.0
+    assert run.train.hazard_moving_weight == 6.0 and run.train.hazard_vehicle_moving_weight == 1.0
+    run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5",
+                                              "--hazard-vehicle-moving-weight", "4"]))
+    assert run.train.hazard_vehicle_moving_weight == 4.0 and run.train.hazard_moving_weight == 1.0
     run = config_from_args(parser.parse_args(["--preset", "tiny", "--hazard", "0.5", "--hazard-ahead", "1.5"]))
     assert run.train.hazard_ahead_s == 1.5
     for flags, says in ((["--synthetic", "--hazard", "0.5"], "--hazard learns from recordings"),
@@ -780,7 +804,9 @@ def test_hazard_flag_needs_recordings_and_a_sound_weight(tmp_path, capsys):
                         (["--hazard", "1", "--hazard-pos-weight", "nan"], "1 or more"),
                         (["--hazard-turn-weight", "3"], "add --hazard WEIGHT"),
                         (["--hazard", "1", "--hazard-moving-weight", "0.5"], "1 or more"),
-                        (["--hazard-moving-weight", "3"], "add --hazard WEIGHT")):
+                        (["--hazard-moving-weight", "3"], "add --hazard WEIGHT"),
+                        (["--hazard", "1", "--hazard-vehicle-moving-weight", "0"], "1 or more"),
+                        (["--hazard-vehicle-moving-weight", "3"], "add --hazard WEIGHT")):
         assert bid(["train", "--preset", "tiny", *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
