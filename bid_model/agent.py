@@ -374,6 +374,10 @@ class BIDAgent:
         self._moving_off = False
         self._since_override = 10**9  # steps since the brakes last overrode an accel >= 0, for move_off_braked
         self._braked_stop = False  # the ego stands where the brakes stopped it
+        # The last step's control-head accel and the nearness the brakes read (for inspection:
+        # bid_model.shadow); () when no brake or move-off reads the hazard outputs.
+        self.head_accel = 0.0
+        self.near: tuple[float, ...] = ()
 
     def reset(self, info: EpisodeInfo) -> None:
         self._prev = None
@@ -384,6 +388,7 @@ class BIDAgent:
         self._braked_stop = False
         self._stand_steps = 0
         self._start_left_m = 0.0
+        self.head_accel, self.near = 0.0, ()
         if self.memory is not None:
             self.memory.reset()
 
@@ -410,6 +415,7 @@ class BIDAgent:
                          hazard_apart=self.move_off_sc, move_off=second)
         control, *extra = out if isinstance(out, tuple) else (out,)
         accel, v = float(control[0, 1]), float(obs.speed_mps)
+        self.head_accel = accel
         if by_forecast:
             ahead = extra.pop(0)
             # The deceleration to the forecast speed of the first horizon, as a share of full braking.
@@ -434,6 +440,7 @@ class BIDAgent:
                 clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *clear_near[k:])
             if self.memory is not None:
                 near = clear_near = self.memory.update(near, v)
+            self.near = near
             if self.move_off_steps:
                 accel = self._move_off(accel, v, clear_near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),

@@ -212,7 +212,8 @@ def _average(args: argparse.Namespace) -> int:
 def _probe(args: argparse.Namespace) -> int:
     from bid_model.probe import probe_hazards, probe_table, write_probe
 
-    result = probe_hazards(args.checkpoint, args.data, every=args.every, threads=args.threads)
+    result = probe_hazards(args.checkpoint, args.data, every=args.every, threads=args.threads,
+                           second=args.second_head)
     print(probe_table(result))
     if args.out:
         out = write_probe(result, args.out)
@@ -278,5 +279,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                     help="folder of recordings, e.g. of `bid record --town 02 --weathers test`")
     pr.add_argument("--every", type=int, default=1, metavar="N", help="probe every N-th frame (default 1)")
     pr.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    pr.add_argument("--second-head", action="store_true",
+                    help="probe the second head (bid train --move-off-head), not the first")
     pr.add_argument("--out", default=None, metavar="PATH", help="also write PATH.json and PATH.md")
     pr.set_defaults(func=_probe)

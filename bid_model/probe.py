@@ -62,14 +62,15 @@ def _stop_line(target: torch.Tensor, speed_mps: np.ndarray, green_m: np.ndarray)
 
 
 def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,
-                  batch_size: int = 64, threads: int | None = None) -> dict[str, Any]:
+                  batch_size: int = 64, threads: int | None = None, second: bool = False) -> dict[str, Any]:
     """The hazard outputs of `checkpoint` on every `every`-th frame of the recordings in
     `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
     read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
     HAZARD_AHEAD_M, the share read as one all the same), `auc`, and the frame counts; for all
     frames ("all") and grouped by command, weather, density, "ego" (standing, or moving at
     MOVING_MPS or faster) and "stop line" (standing at a red line, at a green one, elsewhere:
-    `_stop_line`)."""
+    `_stop_line`). `second`: the second head's outputs (model.move_off_head; beside SC's, as the
+    first head's are) in place of the first head's."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     if threads:
@@ -77,6 +78,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     model, config = load_model(checkpoint)
     if not config.model.hazard:
         raise BidError(f"{checkpoint} has no hazard head to probe; train one with --hazard")
+    if second and not config.model.move_off_head:
+        raise BidError(f"{checkpoint} has no second head to probe (bid train --move-off-head); drop --second-head")
     data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing)
     rows = np.arange(0, len(data), every)
     preds, targets, commands, episodes, speeds, greens = [], [], [], [], [], []
@@ -87,7 +90,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             speed = (torch.tensor([it["speed_mps"] for it in items], dtype=torch.float32)
                      if config.model.speed_input else None)
             out = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
-                        command_one_hot(command), speed, hazard=True)
+                        command_one_hot(command), speed, hazard=True, **({"move_off": True} if second else {}))
             preds.append(out[-1].float())
             targets.append(torch.stack([it["hazard"] for it in items]))
             commands += command
@@ -109,7 +112,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             rows_of = torch.from_numpy(labels == value)
             by[name][value] = _group(pred[rows_of], target[rows_of])
     towns = sorted({f.get("town", "?") for f in facts})
-    return {"checkpoint": str(checkpoint), "folder": str(folder), "towns": towns, "recordings": len(facts),
+    return {"checkpoint": str(checkpoint), **({"head": "second"} if second else {}),
+            "folder": str(folder), "towns": towns, "recordings": len(facts),
             "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
 
 
@@ -119,7 +123,8 @@ def _percent(x: float | None) -> str:
 
 def probe_table(result: dict[str, Any]) -> str:
     """The probe's figures as markdown: one table per kind, a row per group."""
-    lines = [f"# Hazard outputs of {result['checkpoint']} on {result['folder']} "
+    head = " (its second head)" if result.get("head") == "second" else ""
+    lines = [f"# Hazard outputs of {result['checkpoint']}{head} on {result['folder']} "
              f"({', '.join(result['towns'])}; {result['recordings']} recordings, {result['frames']} frames"
              f"{'' if result['every'] == 1 else ', one in ' + str(result['every'])})", ""]
     for kind in (k for k in KINDS if k in result["all"]):

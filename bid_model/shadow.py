@@ -39,17 +39,22 @@ class ShadowStep:
     expert: tuple[float, float]
     reason: str  # what bound the expert's speed: "speed", "vehicle veh12", "red light", ...
     accel_at: tuple[float, ...]  # the BID's accel at PROBE_SPEEDS; () without a speed input
+    head_accel: float | None = None  # the control head's accel, before the brakes and move-off
+    near: tuple[float, ...] = ()  # the hazard nearness the brakes read (BIDAgent.near); () for none
+    lateral_m: float = 0.0  # the ego's offset from the route's centre line (+ left)
 
 
 class Shadow:
-    """A BID checkpoint drives; the expert labels the same observations and is logged."""
+    """A BID checkpoint drives (with `options`, BIDAgent's drive options, as `bid evaluate`
+    passes them); the expert labels the same observations and is logged."""
 
     uses_camera = True
 
-    def __init__(self, checkpoint: str | Path, town: str, probe_speeds: tuple[float, ...] = PROBE_SPEEDS):
+    def __init__(self, checkpoint: str | Path, town: str, probe_speeds: tuple[float, ...] = PROBE_SPEEDS,
+                 options: dict | None = None):
         from bid_sim.expert import Expert
 
-        self.bid = BIDAgent(checkpoint)
+        self.bid = BIDAgent(checkpoint, **(options or {}))
         self.expert = Expert(town=town)
         self.probe_speeds = probe_speeds if self.bid.config.model.speed_input else ()
         self.steps: list[ShadowStep] = []
@@ -64,7 +69,9 @@ class Shadow:
         label = self.expert.act(obs)
         self.steps.append(ShadowStep(len(self.steps), round(obs.snapshot.time_s, 2), float(obs.speed_mps),
                                      (mine.steer, mine.accel), (label.steer, label.accel),
-                                     self.expert.reason, self._accel_at()))
+                                     self.expert.reason, self._accel_at(), self.bid.head_accel,
+                                     tuple(round(x, 3) for x in self.bid.near),
+                                     float(obs.snapshot.ego.lateral_m)))
         return mine
 
     @torch.inference_mode()
@@ -79,15 +86,17 @@ class Shadow:
 
 
 def probe_episode(checkpoint: str | Path, town: str, route: int, weather: str, density: str, seed: int,
-                  max_steps: int | None = None, probe_speeds: tuple[float, ...] = PROBE_SPEEDS):
-    """(EpisodeResult, [ShadowStep]) of one episode as `bid evaluate` runs it (re-planning on)."""
+                  max_steps: int | None = None, probe_speeds: tuple[float, ...] = PROBE_SPEEDS,
+                  options: dict | None = None):
+    """(EpisodeResult, [ShadowStep]) of one episode as `bid evaluate` runs it (re-planning on), the
+    BID driving with `options` (the drive options of the run, its config.json's "options")."""
     from bid_sim.episode import run_episode
     from bid_sim.render import Renderer
     from bid_sim.town_map import load_town_map
     from bid_sim.towns import resolve_town
 
     t = resolve_town(town)
-    agent = Shadow(checkpoint, t.name, probe_speeds)
+    agent = Shadow(checkpoint, t.name, probe_speeds, options)
     renderer = Renderer(load_town_map(t), weather=weather, seed=seed)
     result = run_episode(t, route, weather, density, seed, agent, renderer=renderer, replan=True,
                          max_steps=max_steps)

@@ -53,6 +53,27 @@ def test_the_bid_drives_as_without_the_probe(speed_checkpoint, town02, one_threa
     assert all(len(s.accel_at) == 2 for s in steps)
 
 
+def test_the_bid_drives_with_the_runs_drive_options_and_its_brakes_inputs_are_logged(town02, one_thread):
+    """With `options` (a run's drive options) the BID drives as `bid evaluate` drove it; each step
+    keeps the control head's accel, the nearness the brakes read and the ego's lateral offset."""
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    options = {"vehicle_brake": 2.0, "light_brake": 1.0, "move_off": 8.0, "hazard_brake": 1.0, "max_speed": 0.5}
+    result, steps = probe_episode(shipped, "02", 0, "WetSunset", "normal", 0, max_steps=30, probe_speeds=(0.0,),
+                                  options=options)
+    alone = Spy(shipped, **options)
+    run_episode(town02, 0, "WetSunset", "normal", 0, alone, replan=True, max_steps=30,
+                renderer=Renderer(load_town_map(town02), weather="WetSunset", seed=0))
+    assert [s.bid for s in steps] == alone.controls
+    assert all(len(s.near) == 3 and s.head_accel is not None for s in steps)
+    assert result.steps == 30 and all(isinstance(s.lateral_m, float) and abs(s.lateral_m) < 2.0 for s in steps)
+    # Above the 0.5 m/s cap the accel driven is the cap's braking, whatever the control head asks.
+    capped = [s for s in steps if s.speed_mps > 0.6]
+    assert capped and all(s.bid[1] < -0.05 and s.bid[1] <= s.head_accel for s in capped)
+    assert any(s.head_accel > 0.0 for s in capped)
+    _, plain = probe_episode(shipped, "02", 0, "WetSunset", "normal", 0, max_steps=30, probe_speeds=(0.0,))
+    assert all(s.near == () for s in plain) and max(s.speed_mps for s in plain) > 1.5
+
+
 def test_without_speed_input_nothing_is_asked(town02, one_thread, tmp_path):
     cfg = tiny()
     train(tmp_path, type(cfg)(cfg.model, cfg.train.with_epochs(1)), synthetic=True, progress=False)

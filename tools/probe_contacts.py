@@ -1,10 +1,12 @@
 """The seconds before a BID's first contacts, with the expert labelling alongside.
 
 Picks the failed episodes of a `bid evaluate` folder whose first failure was a contact,
-replays them (episodes are deterministic per seed) with the BID driving and the expert
-beside it (bid_model/shadow.py), and prints, for each, the steps before the contact: speed,
-the BID's and the expert's steer and accel, the expert's reason and the BID's accel at
-other speed inputs. Then a tally over all of them: steps where the expert braked, where
+replays them (episodes are deterministic per seed) with the BID driving as the folder's run
+drove it (its drive options) and the expert beside it (bid_model/shadow.py), and prints, for
+each, the steps before the contact: speed, the ego's offset from the route, the BID's steer,
+its control head's accel and the accel it drove with, the hazard nearness its brakes read
+(pedestrian, vehicle, red light, ...), the expert's steer, accel and reason and the BID's accel
+at other speed inputs. Then a tally over all of them: steps where the expert braked, where
 the BID drove on there, and where it would have braked had its speed input been higher.
 
     .venv/bin/python tools/probe_contacts.py results/town02_jam10/bid_small_r11f --density normal --max 10
@@ -33,9 +35,9 @@ def _probe(job: tuple) -> dict:
     from bid_sim.evaluate import first_collision
 
     torch.set_num_threads(1)
-    checkpoint, line, seconds = job
+    checkpoint, line, seconds, options = job
     result, steps = probe_episode(checkpoint, line["town"], line["route_index"], line["weather"],
-                                  line["density"], line["seed"])
+                                  line["density"], line["seed"], options=options)
     hit = first_collision(result.to_dict())
     before = window(steps, hit["time_s"], seconds) if hit else []
     return {"key": line["key"], "status": result.status, "contact": hit,
@@ -60,10 +62,15 @@ def _show(r: dict, every: int) -> str:
     from bid_model.shadow import PROBE_SPEEDS
 
     speeds = ",".join(f"{v:g}" for v in PROBE_SPEEDS)
-    rows = [head, f"   t s   v m/s | BID steer accel | expert steer accel  reason | BID accel at v = {speeds}"]
+    rows = [head, f"   t s   v m/s  lat m | BID steer head drove | near (ped veh light ...) | "
+                  f"expert steer accel  reason | BID accel at v = {speeds}"]
     for s in r["steps"][::every]:
         at = " ".join(f"{a:+.2f}" for a in s["accel_at"])
-        rows.append(f"  {s['time_s']:5.1f} {s['speed_mps']:5.1f} |   {s['bid'][0]:+.2f} {s['bid'][1]:+.2f} |"
+        near = " ".join(f"{x:.2f}" for x in s.get("near", ())) or "-"
+        head_accel = s.get("head_accel")
+        head_accel = "  -  " if head_accel is None else f"{head_accel:+.2f}"
+        rows.append(f"  {s['time_s']:5.1f} {s['speed_mps']:5.1f} {s.get('lateral_m', 0.0):+6.2f} |   "
+                    f"{s['bid'][0]:+.2f} {head_accel} {s['bid'][1]:+.2f} | {near:<24} |"
                     f"    {s['expert'][0]:+.2f} {s['expert'][1]:+.2f}  {s['reason']:<16} | {at}")
     return "\n".join(rows)
 
@@ -95,9 +102,10 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint = args.checkpoint or config["checkpoint"]
         if not Path(checkpoint).is_file():
             raise BidError(f"checkpoint {checkpoint} not found; pass --checkpoint PATH")
-        from bid_model.checkpoint import load_model
+        from bid_sim.evaluate import load_agent
 
-        load_model(checkpoint)  # a damaged or foreign checkpoint fails here, once, in one line
+        # a damaged or foreign checkpoint, or a drive option it lacks, fails here, once, in one line
+        load_agent("bid", checkpoint, config.get("options"))
         if hashlib.sha256(Path(checkpoint).read_bytes()).hexdigest() != config.get("checkpoint_sha256"):
             print(f"note: {checkpoint} is not the checkpoint {folder} was evaluated with; "
                   "episodes will not replay as they ran", file=sys.stderr)
@@ -108,7 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     except BidError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    jobs = [(checkpoint, ln, args.seconds) for ln in picked]
+    options = config.get("options") or {}  # how the run drove: the episodes replay only so
+    jobs = [(checkpoint, ln, args.seconds, options) for ln in picked]
     try:
         with mp.get_context("spawn").Pool(min(args.workers, len(jobs))) as pool:
             probes = pool.map(_probe, jobs)
