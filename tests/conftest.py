@@ -1,6 +1,7 @@
 """Shared fixtures: towns are built once per session (netconvert on demand)."""
 
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -66,3 +67,23 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+
+
+@pytest.fixture
+def two_heads(tmp_path):
+    """make(speed) -> (path, payload): the shipped checkpoint with its hazard head copied in as a
+    second head (model.move_off_head; reading the speed with `speed`), saved to tmp_path/two.pt."""
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+
+    def make(speed: bool = True):
+        two = load_checkpoint(SHIPPED)
+        two["config"]["model"].update(move_off_head=True, **({"move_off_speed": True} if speed else {}))
+        two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
+                             for k, v in two["model"].items() if k.startswith("hazard_head.")})
+        save_checkpoint(tmp_path / "two.pt", two)
+        return tmp_path / "two.pt", two
+
+    return make

@@ -677,7 +677,7 @@ def test_move_off_sc_waits_for_what_sc_sees_not_the_head(tmp_path, capsys):
     assert "--move-off-sc is an option of --agent bid" in capsys.readouterr().err
 
 
-def test_a_move_off_head_decides_moving_off_and_the_first_head_braking(tmp_path):
+def test_a_move_off_head_decides_moving_off_and_the_first_head_braking(tmp_path, two_heads):
     """A checkpoint with a move-off head (`bid train --move-off-head`): a standing ego moves off
     while only the first hazard head reads a vehicle near, and waits while the move-off head
     reads one, or while the first head reads a red light near; moving, the brakes read the first
@@ -687,15 +687,10 @@ def test_a_move_off_head_decides_moving_off_and_the_first_head_braking(tmp_path)
     import torch
 
     from bid_model.agent import MOVE_OFF_ACCEL, vehicle_brake
-    from bid_model.checkpoint import load_checkpoint, save_checkpoint
     from bid_sim.agents import Observation
 
     shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
-    two = load_checkpoint(shipped)  # the shipped network with its head copied as the move-off head
-    two["config"]["model"]["move_off_head"] = True
-    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
-                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
-    save_checkpoint(tmp_path / "two.pt", two)
+    two_heads(speed=False)  # the shipped network with its head copied as the move-off head
     agent = BIDAgent(tmp_path / "two.pt", move_off=0.3, vehicle_brake=1.0)
     frame = np.random.default_rng(4).integers(0, 255, (300, 900, 3), dtype=np.uint8)
 
@@ -742,7 +737,7 @@ def test_a_move_off_head_decides_moving_off_and_the_first_head_braking(tmp_path)
         BIDAgent(shipped).model(frame_t, prev, cmd, speed, hazard=True, move_off=True)
 
 
-def test_move_off_light_waits_for_the_move_off_heads_red_light_and_the_first_heads_path(tmp_path):
+def test_move_off_light_waits_for_the_move_off_heads_red_light_and_the_first_heads_path(tmp_path, two_heads):
     """With `move_off_light` (a move-off head reading the speed, `bid train --move-off-head
     --move-off-speed`), move-off waits for the move-off head's red light and the first head's
     pedestrian and vehicle; the brakes still read the first head."""
@@ -750,15 +745,10 @@ def test_move_off_light_waits_for_the_move_off_heads_red_light_and_the_first_hea
     import torch
 
     from bid_model.agent import MOVE_OFF_ACCEL
-    from bid_model.checkpoint import load_checkpoint, save_checkpoint
     from bid_sim.agents import Observation
 
     shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
-    two = load_checkpoint(shipped)
-    two["config"]["model"].update(move_off_head=True, move_off_speed=True)
-    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
-                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
-    save_checkpoint(tmp_path / "two.pt", two)
+    two_heads()
     agent = BIDAgent(tmp_path / "two.pt", move_off=0.3, move_off_light=True)
     frame = np.random.default_rng(4).integers(0, 255, (300, 900, 3), dtype=np.uint8)
 
@@ -794,7 +784,7 @@ def test_move_off_light_waits_for_the_move_off_heads_red_light_and_the_first_hea
         BIDAgent(shipped, move_off=8, move_off_light=True)
 
 
-def test_vehicle_second_head_brakes_and_moves_off_by_the_second_heads_vehicle(tmp_path):
+def test_vehicle_second_head_brakes_and_moves_off_by_the_second_heads_vehicle(tmp_path, two_heads):
     """With `vehicle_second_head` (a second head refitted for vehicles near a moving ego), the
     vehicle brake and move-off read that head's vehicle; the pedestrian and red light still the
     first head's."""
@@ -802,15 +792,10 @@ def test_vehicle_second_head_brakes_and_moves_off_by_the_second_heads_vehicle(tm
     import torch
 
     from bid_model.agent import MOVE_OFF_ACCEL
-    from bid_model.checkpoint import load_checkpoint, save_checkpoint
     from bid_sim.agents import Observation
 
     shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
-    two = load_checkpoint(shipped)
-    two["config"]["model"].update(move_off_head=True, move_off_speed=True)
-    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
-                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
-    save_checkpoint(tmp_path / "two.pt", two)
+    two_heads()
     frame = np.random.default_rng(5).integers(0, 255, (300, 900, 3), dtype=np.uint8)
 
     def drive(agent: BIDAgent, first: tuple[float, ...], second: tuple[float, ...], speed: float,

@@ -104,19 +104,15 @@ def test_bid_probe_prints_and_writes_the_tables_and_refuses_bad_input(recorded, 
         probe_hazards(hazard_run / "plain" / "last.pt", recorded)
 
 
-def test_probe_second_head_reads_the_second_head(recorded, tmp_path, one_thread):
+def test_probe_second_head_reads_the_second_head(recorded, tmp_path, one_thread, two_heads):
     """--second-head probes the second head (bid train --move-off-head): a copy of the first
     head reads as it does, a changed one otherwise; a checkpoint without one is refused."""
     from pathlib import Path
 
-    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+    from bid_model.checkpoint import save_checkpoint
 
     shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
-    two = load_checkpoint(shipped)
-    two["config"]["model"].update(move_off_head=True, move_off_speed=True)
-    two["model"].update({"hazard_move_off." + k.removeprefix("hazard_head."): v.clone()
-                         for k, v in two["model"].items() if k.startswith("hazard_head.")})
-    save_checkpoint(tmp_path / "two.pt", two)
+    _, two = two_heads()
     first = probe_hazards(tmp_path / "two.pt", recorded, every=9)
     second = probe_hazards(tmp_path / "two.pt", recorded, every=9, second=True)
     assert second.pop("head") == "second" and second == first
