@@ -108,6 +108,13 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --move-off-head, the move-off head reads MPC with the speed token, as the "
                         "first head does: a second head of the same kind, fitted apart (e.g. with "
                         "--hazard-green-weight), whose red light `bid evaluate --move-off-light` reads")
+    p.add_argument("--second-bumper", type=float, default=None, metavar="M",
+                   help="with --move-off-head, the second head's vehicle target also counts the nearest car "
+                        "within M metres ahead of the front bumper along the ego's current heading and turn, "
+                        "wherever the route goes (read by `bid evaluate --vehicle-second-head`)")
+    p.add_argument("--second-bumper-weight", type=float, default=None, metavar="W",
+                   help="with --second-bumper, the frames where the car ahead of the bumper is nearer than "
+                        "the path's weigh W times in the second head's loss (they are rare: a wide turn)")
     p.add_argument("--hazard-crossing", action="store_true", default=None,
                    help="with --hazard-sc, a fourth hazard output from a second SC map: how near the next "
                         "crossing on the path with a pedestrian on it is (driven by bid evaluate --crossing-brake)")

@@ -191,6 +191,11 @@ class TrainConfig:
     hazard_green_weight: float = 1.0
     # Further weight of a frame with a vehicle in the path while the ego moves (train.hazard_weights).
     hazard_vehicle_moving_weight: float = 1.0
+    # The second head's vehicle target also counts a vehicle this far ahead of the bumper along
+    # the ego's heading and turn (hazards.bumper_vehicles; 0: the path's, as the first head's).
+    second_bumper_m: float = 0.0
+    # With it, the second head's vehicle entries where that car is nearer than the path's weigh this much more.
+    second_bumper_weight: float = 1.0
     # Pedestrians count in the path where they will be within this many seconds (hazards.path_hazards).
     hazard_ahead_s: float = 0.0
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (losses.l1_loss)

@@ -67,6 +67,9 @@ MOVING_MPS = 0.3  # the ego moves at this speed or faster (train --hazard-moving
 AT_LINE_M = 3.0
 AWAY_M = 0.5  # beyond the corridor by this, a pedestrian walking away from the path is no one's
 _CROSSING_VERSION = "crossing-v2"
+_BUMPER_VERSION = "bumper-v1"
+BUMPER_MAX_CURVATURE = 0.25  # 1/m: a tighter turn than Town02's (radius 4 m) is yaw-rate noise
+BUMPER_MOVING_MPS = 0.5  # slower, the ego turns on the spot no way: the arc is straight on
 
 
 def _path_points(xy: np.ndarray, s: np.ndarray, s0: float) -> np.ndarray:
@@ -174,6 +177,39 @@ def path_hazards(snaps: list[Snapshot], ped_ahead_s: float = 0.0) -> np.ndarray:
     return out
 
 
+def _arc(x: float, y: float, yaw: float, curvature: float, length_m: float) -> np.ndarray:
+    """(Q, 2) points every PATH_STEP_M along a circular arc of `curvature` (1/m, + left) from
+    (x, y) at heading `yaw`, `length_m` long (a straight line at curvature 0)."""
+    s = np.arange(0.0, length_m + PATH_STEP_M / 2, PATH_STEP_M)
+    if abs(curvature) < 1e-6:
+        return np.stack([x + s * np.cos(yaw), y + s * np.sin(yaw)], axis=1)
+    turned = yaw + curvature * s
+    return np.stack([x + (np.sin(turned) - np.sin(yaw)) / curvature,
+                     y - (np.cos(turned) - np.cos(yaw)) / curvature], axis=1)
+
+
+def bumper_vehicles(snaps: list[Snapshot], ahead_m: float) -> np.ndarray:
+    """(T,) float32: per snapshot (one episode, in step order) the distance in metres from the
+    ego's front to the nearest vehicle in the corridor along the arc its heading and turn now
+    lead along, within `ahead_m` of the front (HAZARD_AHEAD_M: none; see the module's docstring).
+    The turn is the yaw rate since the previous snapshot over the speed (none at the first,
+    nor below BUMPER_MOVING_MPS), at most BUMPER_MAX_CURVATURE."""
+    out = np.full(len(snaps), HAZARD_AHEAD_M, dtype=np.float32)
+    for t, snap in enumerate(snaps):
+        ego = snap.ego
+        curvature = 0.0
+        if t > 0 and ego.speed_mps >= BUMPER_MOVING_MPS:
+            dt = snap.time_s - snaps[t - 1].time_s
+            if dt > 0:
+                turn = (ego.yaw_rad - snaps[t - 1].ego.yaw_rad + np.pi) % (2 * np.pi) - np.pi
+                curvature = float(np.clip(turn / dt / ego.speed_mps, -BUMPER_MAX_CURVATURE, BUMPER_MAX_CURVATURE))
+        front = ego.length_m / 2
+        arc = _arc(ego.x_m, ego.y_m, ego.yaw_rad, curvature, front + ahead_m)
+        dist = _nearest_in_path(snap.vehicles, arc, ego.width_m / 2 + CORRIDOR_MARGIN_M, front)
+        out[t] = dist if dist <= ahead_m else HAZARD_AHEAD_M
+    return out
+
+
 def _entry(polygon, path: np.ndarray) -> int | None:
     """Index of the first point of `path` inside `polygon` (None: it never enters)."""
     inside = shapely.contains_xy(polygon, path[:, 0], path[:, 1])
@@ -250,6 +286,16 @@ def file_crossings(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             crossing_distances(snaps, town_crossings(path))[:, None])
 
 
+def file_bumper(path: str | os.PathLike, ahead_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(steps (T,), bumper_vehicles (T, 1)) of one recording."""
+    snaps = [snap for snap, _control in read_snapshots(path)]
+    return np.array([s.step for s in snaps], dtype=np.int64), bumper_vehicles(snaps, ahead_m)[:, None]
+
+
+def _bumper_job(job: tuple[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    return file_bumper(*job)
+
+
 def _file_job(job: tuple[str, float]) -> tuple[np.ndarray, np.ndarray]:
     return file_hazards(*job)
 
@@ -281,6 +327,13 @@ def index_crossings(files: list[Path], episode: np.ndarray, step: np.ndarray, ca
     """(N, 1) float32 crossing_distances of every index row, cached as index_hazards' are."""
     return _index(files, episode, step, cache_dir, workers, "crossings", _CROSSING_VERSION, 1,
                   _crossing_job, [(str(f),) for f in files])
+
+
+def index_bumper(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: Path | None,
+                 ahead_m: float, workers: int | None = None) -> np.ndarray:
+    """(N, 1) float32 bumper_vehicles within `ahead_m` of every index row, cached as index_hazards' are."""
+    return _index(files, episode, step, cache_dir, workers, "bumper", f"{_BUMPER_VERSION};ahead={ahead_m:g}", 1,
+                  _bumper_job, [(str(f), ahead_m) for f in files])
 
 
 def _index(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: Path | None,

@@ -25,7 +25,7 @@ from bid_model.config import KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
 from bid_model.recordings import open_every_frame
-from bid_model.train import hazard_detection
+from bid_model.train import hazard_detection, second_targets
 from bid_sim.errors import BidError
 
 # Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
@@ -70,7 +70,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     frames ("all") and grouped by command, weather, density, "ego" (standing, or moving at
     MOVING_MPS or faster) and "stop line" (standing at a red line, at a green one, elsewhere:
     `_stop_line`). `second`: the second head's outputs (model.move_off_head; beside SC's, as the
-    first head's are) in place of the first head's."""
+    first head's are) in place of the first head's, against its own targets (with `bid train
+    --second-bumper` its vehicle the nearer of the path's and the one ahead of the bumper)."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     if threads:
@@ -80,7 +81,9 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         raise BidError(f"{checkpoint} has no hazard head to probe; train one with --hazard")
     if second and not config.model.move_off_head:
         raise BidError(f"{checkpoint} has no second head to probe (bid train --move-off-head); drop --second-head")
-    data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing)
+    bumper_m = config.train.second_bumper_m if second else 0.0
+    data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing,
+                                   bumper_m=bumper_m)
     rows = np.arange(0, len(data), every)
     preds, targets, commands, episodes, speeds, greens = [], [], [], [], [], []
     with torch.inference_mode():
@@ -92,7 +95,10 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             out = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
                         command_one_hot(command), speed, hazard=True, **({"move_off": True} if second else {}))
             preds.append(out[-1].float())
-            targets.append(torch.stack([it["hazard"] for it in items]))
+            near = torch.stack([it["hazard"] for it in items])
+            if bumper_m > 0:
+                near = second_targets({"vehicle_bumper": torch.tensor([it["vehicle_bumper"] for it in items])}, near)
+            targets.append(near)
             commands += command
             episodes += [it["episode"] for it in items]
             speeds += [float(it["speed_mps"]) for it in items]
@@ -113,6 +119,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             by[name][value] = _group(pred[rows_of], target[rows_of])
     towns = sorted({f.get("town", "?") for f in facts})
     return {"checkpoint": str(checkpoint), **({"head": "second"} if second else {}),
+            **({"bumper_m": bumper_m} if bumper_m > 0 else {}),
             "folder": str(folder), "towns": towns, "recordings": len(facts),
             "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
 
@@ -124,6 +131,8 @@ def _percent(x: float | None) -> str:
 def probe_table(result: dict[str, Any]) -> str:
     """The probe's figures as markdown: one table per kind, a row per group."""
     head = " (its second head)" if result.get("head") == "second" else ""
+    if result.get("bumper_m"):
+        head += f" (vehicles also within {result['bumper_m']:g} m ahead of the bumper)"
     lines = [f"# Hazard outputs of {result['checkpoint']}{head} on {result['folder']} "
              f"({', '.join(result['towns'])}; {result['recordings']} recordings, {result['frames']} frames"
              f"{'' if result['every'] == 1 else ', one in ' + str(result['every'])})", ""]

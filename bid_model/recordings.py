@@ -27,10 +27,12 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from bid_model.config import PATH_KINDS
 from bid_model.data import resize_frame, split_episodes
 from bid_model.hazards import (
     HAZARD_AHEAD_M,
     green_distance,
+    index_bumper,
     index_crossings,
     index_hazards,
     light_distance,
@@ -178,13 +180,16 @@ class RecordingDataset(Dataset):
     def __init__(self, index: _Index, rows: np.ndarray, frame_hw: tuple[int, int], cache: Path | None,
                  still: np.ndarray | None = None, motionless: np.ndarray | None = None,
                  accel: np.ndarray | None = None, forecast: np.ndarray | None = None,
-                 hazard: np.ndarray | None = None):
+                 hazard: np.ndarray | None = None, bumper: np.ndarray | None = None):
         self.index, self.rows, self.frame_hw = index, np.asarray(rows, dtype=np.int64), tuple(frame_hw)
         # (N, K) speeds ahead per index row, the targets of the speed forecast (future_speeds).
         self.forecast = forecast
         # (N, 2) nearness of the nearest pedestrian and vehicle in the path per index row, the
         # targets of the hazard head (hazard_nearness).
         self.hazard = hazard
+        # (N,) nearness of the nearest vehicle in the path or ahead of the bumper per index row,
+        # the second head's vehicle target with `bid train --second-bumper` (bumper_targets).
+        self.bumper = bumper
         # Accel labels per index row, where they are not the recorded ones (anticipate_braking).
         self.accel_labels = None if accel is None else np.asarray(accel, dtype=np.float32)
         # Rows shown standing still: frame t−1 = frame t and speed 0 (see balance_rows).
@@ -225,6 +230,8 @@ class RecordingDataset(Dataset):
             sample["hazard"] = torch.from_numpy(self.hazard[j])
             if ix.green_dist is not None:  # not a target: for --hazard-green-weight and `bid probe`
                 sample["green_m"] = float(ix.green_dist[j])
+        if self.bumper is not None:
+            sample["vehicle_bumper"] = float(self.bumper[j])
         return sample
 
     def __getstate__(self) -> dict:
@@ -451,17 +458,28 @@ def _hazard_targets(index: _Index, cache_dir: Path | None, hazard_ahead_s: float
     return hazard_nearness(np.column_stack(columns))
 
 
+def bumper_targets(index: _Index, cache_dir: Path | None, near: np.ndarray, ahead_m: float) -> np.ndarray:
+    """(N,) float32 nearness of the nearest vehicle in the path (`near`'s vehicle column) or
+    within `ahead_m` ahead of the bumper along the ego's heading and turn (hazards.bumper_vehicles)."""
+    ahead = hazard_nearness(index_bumper(index.files, index.episode, index.step, cache_dir, ahead_m))[:, 0]
+    return np.maximum(near[:, PATH_KINDS.index("vehicle")], ahead).astype(np.float32)
+
+
 def open_every_frame(folder: str | os.PathLike, frame_hw: tuple[int, int], crossing: bool = False,
-                     cache: bool = True) -> tuple[RecordingDataset, list[dict]]:
+                     cache: bool = True, bumper_m: float = 0.0) -> tuple[RecordingDataset, list[dict]]:
     """Every frame of the recordings in `folder`, in (file, step) order, as recorded (no split,
     no rebalancing), with the hazard targets (`open_recordings(hazard=True)`; with `crossing`
     the fourth too), and the facts of each recording (a sample's "episode" indexes them): to
-    measure a trained model on recordings it never saw, another town's or weather's."""
+    measure a trained model on recordings it never saw, another town's or weather's. With
+    `bumper_m` the samples hold "vehicle_bumper" too (`open_recordings`)."""
     folder = Path(folder)
     index, _ = _open_index(folder, cache)
     cache_path = build_cache(index, folder, tuple(frame_hw)) if cache else None
-    near = _hazard_targets(index, folder / CACHE_DIR if cache else None, 0.0, crossing)
-    return RecordingDataset(index, np.arange(len(index.step)), frame_hw, cache_path, hazard=near), list(index.facts)
+    cache_dir = folder / CACHE_DIR if cache else None
+    near = _hazard_targets(index, cache_dir, 0.0, crossing)
+    bumper = bumper_targets(index, cache_dir, near, bumper_m) if bumper_m > 0 else None
+    return (RecordingDataset(index, np.arange(len(index.step)), frame_hw, cache_path, hazard=near, bumper=bumper),
+            list(index.facts))
 
 
 def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fraction: float, seed: int,
@@ -469,7 +487,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                     motion_drop: float = 0.0, hard_repeat: int = 1, hard_brake: bool = True,
                     brake_lookahead: int = 1, forecast_steps: tuple[int, ...] = (), hold_repeat: int = 1,
                     hazard: bool = False, hazard_ahead_s: float = 0.0,
-                    crossing: bool = False, start_accel: float = 0.0
+                    crossing: bool = False, start_accel: float = 0.0, bumper_m: float = 0.0
                     ) -> tuple[RecordingDataset, RecordingDataset, dict]:
     """(train, validation, description) of the recordings in `folder`, split by episode.
 
@@ -485,7 +503,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
     near a red light's stop line is (hazards.light_distance): (pedestrian, vehicle, red_light);
     pedestrians also where they will be within `hazard_ahead_s` (hazards.path_hazards); with
     `crossing` too a fourth, how near the next crossing with a pedestrian on it is
-    (hazards.index_crossings, cached likewise).
+    (hazards.index_crossings, cached likewise); with `bumper_m` (and `hazard`) "vehicle_bumper",
+    how near the nearest vehicle in the path or within `bumper_m` ahead of the bumper along
+    the ego's heading and turn is (`bumper_targets`).
     """
     folder = Path(folder)
     index, partial = _open_index(folder, cache)
@@ -499,10 +519,13 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                                    hold_repeat, start_accel)
     labels = hold_creep(index, accel, start_accel) if start_accel > 0.0 else accel
     forecast = future_speeds(index, tuple(forecast_steps)) if forecast_steps else None
-    near = _hazard_targets(index, folder / CACHE_DIR if cache else None, hazard_ahead_s, crossing) if hazard else None
+    cache_dir = folder / CACHE_DIR if cache else None
+    near = _hazard_targets(index, cache_dir, hazard_ahead_s, crossing) if hazard else None
+    bumper = bumper_targets(index, cache_dir, near, bumper_m) if near is not None and bumper_m > 0 else None
     train = RecordingDataset(index, balanced, frame_hw, cache_path, still,
-                             motion_dropout(len(balanced), motion_drop, seed), labels, forecast, near)
-    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near)
+                             motion_dropout(len(balanced), motion_drop, seed), labels, forecast, near, bumper)
+    val = RecordingDataset(index, np.flatnonzero(is_val), frame_hw, cache_path, forecast=forecast, hazard=near,
+                           bumper=bumper)
     weathers = Counter(f.get("weather", "?") for f in index.facts)
     densities = Counter(f.get("density", "?") for f in index.facts)
     towns = Counter(f.get("town", "?") for f in index.facts)
@@ -517,7 +540,9 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
                                                     "red_light_ahead": int((near[:, 2] > 0).sum()),
                                                     **({"crossing_occupied": int((near[:, 3] > 0).sum())}
                                                        if crossing else {}),
-                                                    "pedestrians_ahead_s": hazard_ahead_s},
+                                                    "pedestrians_ahead_s": hazard_ahead_s,
+                                                    **({"vehicle_in_path_or_bumper": int((bumper > 0).sum()),
+                                                        "bumper_m": bumper_m} if bumper is not None else {})},
         "train_labels_braking_earlier": 0 if accel is None else int((accel[balanced] < index.accel[balanced]).sum()),
         "start_accel": start_accel,
         "train_creep_held": 0 if labels is accel else int(

@@ -79,6 +79,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_DATA = Path("data/town01")
 MAX_HAZARD_AHEAD_S = 5.0  # --hazard-ahead: pedestrians farther in the future are guesses
+MAX_BUMPER_M = HAZARD_AHEAD_M  # --second-bumper: the head says no farther
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
                   "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "val_mae_hazard_m", "val_ped_seen_near", "val_ped_seen_none",
@@ -162,11 +163,34 @@ def hazard_weights(target: torch.Tensor, pos_weight: float = 1.0, turn_weight: f
     return weight
 
 
+def second_targets(batch: dict[str, Any], near: torch.Tensor) -> torch.Tensor:
+    """The second head's targets: the first head's `near` (B, K), with `bid train --second-bumper`
+    its vehicle entry the batch's "vehicle_bumper" (recordings.bumper_targets)."""
+    if "vehicle_bumper" not in batch:
+        return near
+    veh = KINDS.index("vehicle")
+    near = near.clone()
+    near[:, veh] = batch["vehicle_bumper"].to(near.device, near.dtype)
+    return near
+
+
+def second_boost(near: torch.Tensor, second: torch.Tensor, bumper_weight: float) -> torch.Tensor | None:
+    """(B, K) weights on top of hazard_weights for the second head's targets `second` against the
+    first head's `near`: its vehicle entry `bumper_weight` times where the car ahead of the
+    bumper is nearer than the path's (`bid train --second-bumper-weight`); None where all are 1."""
+    if bumper_weight == 1.0:
+        return None
+    veh = KINDS.index("vehicle")
+    boost = torch.ones_like(second, dtype=torch.float32)
+    boost[:, veh] = torch.where(second[:, veh] > near[:, veh], bumper_weight, 1.0)
+    return boost
+
+
 def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
                 turn_weight: float = 1.0, command: torch.Tensor | None = None,
                 moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
                 green_weight: float = 1.0, green_m: torch.Tensor | None = None,
-                vehicle_moving_weight: float = 1.0) -> torch.Tensor:
+                vehicle_moving_weight: float = 1.0, boost: torch.Tensor | None = None) -> torch.Tensor:
     """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
     batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
     about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
@@ -176,9 +200,12 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
     `moving_weight` weighs those in the path of a moving ego more: the expert has mostly
     stopped before a pedestrian is near, so such frames are rare in its recordings.
     `green_weight` weighs the red-light entry of a standing ego at a green line,
-    `vehicle_moving_weight` the vehicles in the path of a moving ego."""
+    `vehicle_moving_weight` the vehicles in the path of a moving ego; `boost` (B, K), if given,
+    multiplies the weights (second_boost)."""
     weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
                             green_weight, green_m, vehicle_moving_weight)
+    if boost is not None:
+        weight = weight * boost
     return (weight * (pred.float() - target).abs()).sum() / weight.sum()
 
 
@@ -306,6 +333,7 @@ def open_data(config: RunConfig, data: Path | None, synthetic: bool
                                                       hazard=tc.lambda_hazard > 0,
                                                       hazard_ahead_s=tc.hazard_ahead_s,
                                                       crossing=config.model.hazard_crossing,
+                                                      bumper_m=tc.second_bumper_m,
                                                       start_accel=tc.start_accel)
     if len(train_set) == 0:
         raise BidError(f"no recordings in {folder} gave training samples; {hint}")
@@ -561,7 +589,10 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
                        tc.hazard_green_weight, green_m, tc.hazard_vehicle_moving_weight)
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
             if second is not None:
-                loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near[:, :own], *weights)
+                near_2 = second_targets(batch, near[:, :own])
+                loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near_2, *weights,
+                                                             boost=second_boost(near[:, :own], near_2,
+                                                                                tc.second_bumper_weight))
             if apart:
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
                 sc_end = own + k * (1 + base.config.sc_presence)
@@ -588,7 +619,7 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
     model.eval()
     preds, targets, episodes, steps, forecast_err, hazard_pred, hazard_true = [], [], [], [], [], [], []
     move_off = model.config.move_off_head and tc.lambda_hazard > 0
-    second_pred = []
+    second_pred, second_true = [], []
     for batch in loader:
         inputs, target = batch_inputs(batch, device)
         with _autocast(device):
@@ -597,6 +628,7 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
                       **({"move_off": True} if move_off else {})), tc)
             if second is not None:
                 second_pred.append(second.float().cpu())
+                second_true.append(second_targets(batch, batch["hazard"][:, :second.shape[1]]))
             if ahead is not None:
                 forecast_err.append((ahead.float().cpu() - batch["future_speed"]).abs())
             if hazard is not None:
@@ -623,7 +655,7 @@ def evaluate(model: BID, loader: DataLoader, tc: TrainConfig, device: torch.devi
     # The move-off head's alike (in the log only: it is fitted beside, or after, the first).
     second = {}
     if second_pred:
-        near_pred = torch.cat(second_pred)
+        near_pred, near_true = torch.cat(second_pred), torch.cat(second_true)
         second = {"mae_m": ((near_pred - near_true).abs().mean(0) * HAZARD_AHEAD_M).tolist(),
                   "detection": hazard_detection(near_pred, near_true)}
     return {"val_move_off": second, "val_loss": float(tc.lambda_steer * mae[0] + tc.lambda_accel * mae[1]),
@@ -942,7 +974,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
-             "--move-off-speed": args.move_off_speed,
+             "--move-off-speed": args.move_off_speed, "--second-bumper": args.second_bumper,
+             "--second-bumper-weight": args.second_bumper_weight,
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only}
@@ -1078,6 +1111,21 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.move_off_head:
             raise BidError("--move-off-speed is how the move-off head reads: add --move-off-head")
         model = dataclasses.replace(model, move_off_speed=True)
+    if args.second_bumper is not None:
+        if not 0 < args.second_bumper <= MAX_BUMPER_M:
+            raise BidError(f"--second-bumper is in metres ahead of the bumper, above 0 to {MAX_BUMPER_M:g}; "
+                           f"got {args.second_bumper}")
+        if not model.move_off_head:
+            raise BidError("--second-bumper shapes the second head's vehicle target: add --move-off-head")
+        tc = dataclasses.replace(tc, second_bumper_m=args.second_bumper)
+    if args.second_bumper_weight is not None:
+        if not 1 <= args.second_bumper_weight < math.inf:
+            raise BidError("--second-bumper-weight weighs the cars ahead of the bumper nearer than the path's, "
+                           f"1 or more; got {args.second_bumper_weight}")
+        if not tc.second_bumper_m:
+            raise BidError("--second-bumper-weight weighs the second head's cars ahead of the bumper: "
+                           "add --second-bumper M")
+        tc = dataclasses.replace(tc, second_bumper_weight=args.second_bumper_weight)
     if args.train_only is not None:
         names = tuple(name.strip() for name in args.train_only.split(",") if name.strip())
         if not names:

@@ -1,6 +1,7 @@
 """What stands in the ego's path (bid_model.hazards): the hazard head's targets, on made-up
 scenes with known answers and on real recordings."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -9,6 +10,7 @@ from shapely.geometry import Polygon, box
 
 from bid_model.hazards import (
     HAZARD_AHEAD_M,
+    bumper_vehicles,
     crossing_distances,
     file_crossings,
     file_hazards,
@@ -17,8 +19,14 @@ from bid_model.hazards import (
     light_distance,
     path_hazards,
 )
-from bid_model.recordings import CACHE_DIR, find_recordings, hazard_nearness, open_recordings
-from bid_sim.recording import read_episode
+from bid_model.recordings import (
+    CACHE_DIR,
+    find_recordings,
+    hazard_nearness,
+    open_every_frame,
+    open_recordings,
+)
+from bid_sim.recording import read_episode, read_snapshots
 from bid_sim.snapshot import GREEN, RED, YELLOW, Actors, EgoView, Snapshot
 
 FRONT_M = 2.3  # half the ego's 4.6 m
@@ -95,6 +103,41 @@ def test_a_standing_ego_looks_along_where_it_goes_next_and_past_the_end_straight
     last = [snap(0, 0.0, 0.0, math.pi / 2, peds=actors((0.0, 10.0, 0.0, 0.5, 0.5)))]
     assert path_hazards(last)[0, 0] == pytest.approx(10.0 - 1.6 - FRONT_M, abs=0.5)
     assert path_hazards([]).shape == (0, 2)
+
+
+def left_turn() -> list[tuple[float, float, float]]:
+    """Poses (x, y, yaw) 0.5 m apart (5 m/s at 0.1 s a step): 2 m east, a left turn of radius
+    10 m about (0, 10), then north."""
+    poses = [(x, 0.0, 0.0) for x in np.arange(-2.0, 0.0, 0.5)]
+    poses += [(10 * math.sin(a), 10 - 10 * math.cos(a), a) for a in np.arange(0.0, math.pi / 2, 0.05)]
+    return poses + [(10.0, 10.0 + k * 0.5, math.pi / 2) for k in range(1, 60)]
+
+
+def test_the_bumper_corridor_runs_along_the_heading_and_turn_now_not_the_path_driven():
+    poses = left_turn()
+    # A car standing to the right of straight on: the ego turns away from it, so it is never
+    # in the path; ahead of the bumper while the ego still heads east, its rear disc
+    # (1.35 m behind its centre, 1.9 m right) enters the 1.35 m corridor 4.35 m from the ego's centre.
+    cars = actors((5.0, -1.9, 0.0, 4.6, 1.9))
+    snaps = [snap(i, x, y, a, cars=cars) for i, (x, y, a) in enumerate(poses)]
+    assert path_hazards(snaps)[0, 1] == HAZARD_AHEAD_M
+    near = bumper_vehicles(snaps, 6.0)
+    assert near[0] == pytest.approx(4.35 - FRONT_M, abs=0.5)
+    assert bumper_vehicles(snaps, 1.5)[0] == HAZARD_AHEAD_M  # farther than asked
+    assert near[-1] == HAZARD_AHEAD_M  # heading north, long past it
+    # In the turn the corridor bends with it (yaw rate 0.5 rad/s at 5 m/s: radius 10 m): a car
+    # standing on the circle 9 m further round is ahead of the bumper, as it is in the path; on
+    # a straight corridor it would be 3.8 m to the left of it.
+    t = 10
+    a = poses[t][2] + 0.9
+    on_circle = actors((10 * math.sin(a), 10 - 10 * math.cos(a), a, 4.6, 1.9))
+    turning = [snap(i, x, y, yaw, cars=on_circle) for i, (x, y, yaw) in enumerate(poses)]
+    assert bumper_vehicles(turning, 10.0)[t] == pytest.approx(path_hazards(turning)[t, 1], abs=0.6)
+    assert bumper_vehicles(turning, 10.0)[t] < 9.0 - FRONT_M
+    # Standing (or at the first snapshot) there is no turn: straight on.
+    standing = [dataclasses.replace(s, ego=dataclasses.replace(s.ego, speed_mps=0.0)) for s in turning]
+    assert bumper_vehicles(standing, 10.0)[t] == HAZARD_AHEAD_M
+    assert bumper_vehicles([], 6.0).shape == (0,)
 
 
 def walking(x0: float, y0: float, n: int = 80, vy_mps: float = 1.5) -> list[Snapshot]:
@@ -193,6 +236,25 @@ def test_hazards_of_recordings_align_with_the_index_and_are_cached(recorded):
     assert np.array_equal(with_crossing.hazard[:, 3:], want)
     assert desc["hazard_frames"]["crossing_occupied"] == int((want > 0).sum())
     assert len(list((recorded / CACHE_DIR).glob("crossings-*.npy"))) == 1
+
+
+def test_the_bumper_target_of_recordings_is_the_nearer_of_path_and_bumper_and_is_cached(recorded):
+    plain = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True)[0]
+    assert "vehicle_bumper" not in plain[0]
+    train, val, desc = open_recordings(recorded, (48, 144), 0.5, 0, hazard=True, bumper_m=8.0)
+    assert np.array_equal(train.hazard, plain.hazard)  # the first head's targets as they were
+    assert len(list((recorded / CACHE_DIR).glob("bumper-*.npy"))) == 1
+    files, _ = find_recordings(recorded)
+    ahead = [bumper_vehicles([snap for snap, _ in read_snapshots(f)], 8.0) for f in files]
+    want = np.maximum(train.hazard[:, 1], hazard_nearness(np.concatenate(ahead)))
+    assert np.array_equal(train.bumper, want)
+    for data in (train, val):
+        sample = data[len(data) - 1]
+        assert sample["vehicle_bumper"] == pytest.approx(want[data.rows[len(data) - 1]])
+    assert desc["hazard_frames"]["vehicle_in_path_or_bumper"] == int((want > 0).sum())
+    assert desc["hazard_frames"]["bumper_m"] == 8.0
+    every, _ = open_every_frame(recorded, (48, 144), bumper_m=8.0)
+    assert np.array_equal(every.bumper, want)
 
 
 def test_the_light_target_is_the_distance_to_a_red_or_amber_stop_line_within_reach():

@@ -121,5 +121,15 @@ def test_probe_second_head_reads_the_second_head(recorded, tmp_path, one_thread,
     changed = probe_hazards(tmp_path / "two.pt", recorded, every=9, second=True)
     assert changed["all"]["vehicle"]["seen_none"] == 1.0 and changed["all"]["pedestrian"] == first["all"]["pedestrian"]
     assert "(its second head)" in probe_table(changed)
+    # Fitted with --second-bumper, the second head is probed against its own vehicle target: the
+    # nearer of the path's and the one ahead of the bumper; the pedestrian's as the first head's.
+    two["config"]["train"]["second_bumper_m"] = 8.0
+    save_checkpoint(tmp_path / "two.pt", two)
+    bumped = probe_hazards(tmp_path / "two.pt", recorded, every=9, second=True)
+    assert bumped["bumper_m"] == 8.0 and "within 8 m ahead of the bumper" in probe_table(bumped)
+    assert bumped["all"]["vehicle"]["none_frames"] <= changed["all"]["vehicle"]["none_frames"]
+    assert bumped["all"]["vehicle"]["near_frames"] >= changed["all"]["vehicle"]["near_frames"]
+    assert bumped["all"]["pedestrian"] == changed["all"]["pedestrian"]
+    assert "bumper_m" not in probe_hazards(tmp_path / "two.pt", recorded, every=9)
     with pytest.raises(BidError, match="no second head to probe"):
         probe_hazards(shipped, recorded, every=9, second=True)

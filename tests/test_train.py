@@ -25,8 +25,11 @@ from bid_model.train import (
     METRIC_COLUMNS,
     EpisodeShardSampler,
     busy_cores,
+    hazard_loss,
     item_episodes,
     load_shared_weights,
+    second_boost,
+    second_targets,
     train,
     warm_start_crossing,
     warm_start_move_off,
@@ -1061,6 +1064,39 @@ def test_a_move_off_head_reading_the_speed_fits_as_the_first_head_refitted(recor
     assert bid([*base, "--move-off-speed", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert "add --move-off-head" in err and "\n" not in err
+
+
+def test_second_bumper_fits_the_second_heads_vehicle_to_cars_ahead_of_the_bumper(recorded, tmp_path, capsys):
+    """--second-bumper M: the second head's vehicle target is the nearer of the path's vehicle
+    and the one within M m ahead of the bumper (recordings.bumper_targets); its other targets,
+    and the first head's, stay the path's. Refused without a second head or out of range."""
+    near = torch.tensor([[0.1, 0.2, 0.3], [0.0, 0.0, 0.9]])
+    assert torch.equal(second_targets({}, near), near)
+    bumped = second_targets({"vehicle_bumper": torch.tensor([0.7, 0.0], dtype=torch.float64)}, near)
+    assert torch.equal(bumped, torch.tensor([[0.1, 0.7, 0.3], [0.0, 0.0, 0.9]])) and near[0, 1] == 0.2
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--speed-input", "--forecast", "0.5", "--hazard", "1", "--out"]
+    assert bid([*base, str(tmp_path / "two"), "--move-off-head", "--second-bumper", "8"]) == 0
+    run = json.loads((tmp_path / "two" / "config.json").read_text())
+    assert run["train"]["second_bumper_m"] == 8.0
+    frames = json.loads((tmp_path / "two" / "dataset.json").read_text())["hazard_frames"]
+    assert frames["bumper_m"] == 8.0 and frames["vehicle_in_path_or_bumper"] >= frames["vehicle_in_path"]
+    # --second-bumper-weight: where the bumper's car is nearer than the path's, its entry weighs more.
+    boost = second_boost(near, bumped, 5.0)
+    assert torch.equal(boost, torch.tensor([[1.0, 5.0, 1.0], [1.0, 1.0, 1.0]])) and second_boost(near, bumped, 1.0) is None
+    pred = torch.zeros(2, 3)
+    assert hazard_loss(pred, bumped, boost=boost) == pytest.approx((0.1 + 5 * 0.7 + 0.3 + 0.9) / 10)
+    assert bid([*base, str(tmp_path / "w"), "--move-off-head", "--second-bumper", "8", "--second-bumper-weight",
+                "5"]) == 0
+    assert json.loads((tmp_path / "w" / "config.json").read_text())["train"]["second_bumper_weight"] == 5.0
+    for flags, says in ((["--second-bumper", "8"], "add --move-off-head"),
+                        (["--move-off-head", "--second-bumper-weight", "5"], "add --second-bumper M"),
+                        (["--move-off-head", "--second-bumper", "8", "--second-bumper-weight", "0.5"], "1 or more"),
+                        (["--move-off-head", "--second-bumper", "0"], "above 0 to 25"),
+                        (["--move-off-head", "--second-bumper", "30"], "above 0 to 25")):
+        assert bid([*base, str(tmp_path / "x"), *flags]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err
 
 
 def test_hazard_crossing_is_a_fourth_output_from_a_second_sc_map_started_as_sc(recorded, tmp_path, capsys):
