@@ -69,7 +69,7 @@ AWAY_M = 0.5  # beyond the corridor by this, a pedestrian walking away from the 
 _CROSSING_VERSION = "crossing-v2"
 _BUMPER_VERSION = "bumper-v1"
 BUMPER_MAX_CURVATURE = 0.25  # 1/m: a tighter turn than Town02's (radius 4 m) is yaw-rate noise
-BUMPER_MOVING_MPS = 0.5  # slower, the ego turns on the spot no way: the arc is straight on
+BUMPER_MOVING_MPS = 0.5  # slower, the yaw rate over the speed says little: the arc is straight on
 
 
 def _path_points(xy: np.ndarray, s: np.ndarray, s0: float) -> np.ndarray:
