@@ -91,8 +91,8 @@ def _record(args: argparse.Namespace) -> int:
     out = args.out or (f"data/town{args.town}" if args.town.isdigit() else f"data/{Path(args.town).name}")
     summary = record(args.town, args.episodes, parse_weathers(args.weathers), densities, args.seed,
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
-                     progress=not args.json, perturb=args.perturb, ray_address=args.ray,
-                     dagger=args.dagger, bends=args.bends, late_brake=args.late_brake,
+                     progress=not args.json, perturb=args.perturb, perturb_turns=args.perturb_turns, ray_address=args.ray,
+                     dagger=args.dagger, bends=args.bends, late_brake=args.late_brake, stall_s=args.stall_takeover,
                      dagger_options=_drive_options(args, None if args.dagger else
                                                    "is how the --dagger student drives; give --dagger CHECKPOINT or drop it"))
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
@@ -336,6 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--agent", default="expert")
     rec.add_argument("--perturb", type=float, default=0.0,
                      help="share of driving time with steering noise; labels stay the expert's (recovery data)")
+    rec.add_argument("--perturb-turns", type=float, default=0.0, metavar="SHARE",
+                     help="share of the junction turns begun late: the turn's first steering damped for 0.4-1.2 s, "
+                          "at any speed, so the car runs wide; labels stay the expert's, which steer it back")
     rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
                      help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
     _add_drive_arguments(rec)
@@ -343,6 +346,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --dagger: the teacher brakes for a car ahead of the student only once stopping "
                           "1 m short of it takes this share of full braking (0.5; default 0: at once), so "
                           "that the recordings hold the student near cars at speed")
+    rec.add_argument("--stall-takeover", type=float, default=None, metavar="S",
+                     help="with --dagger: the teacher starts a student that stands while it would drive only "
+                          "after S seconds (default 1.5); beyond the student's --move-off wait (say 10 with "
+                          "--move-off 8) the student's own move-offs, and the turns begun by them, are recorded")
     rec.add_argument("--bends", action="store_true",
                      help="only routes that take a bend of the road (a corner, driven under LANEFOLLOW) "
                           "in their first 250 m; few random routes do")

@@ -20,9 +20,10 @@ from tqdm import tqdm
 
 from bid_sim import __version__
 from bid_sim.agents import make_agent
+from bid_sim.ego import DT_S
 from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
-from bid_sim.perturb import Dagger, Perturbed
+from bid_sim.perturb import MAX_STALL_STEPS, STALL_STEPS, Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
 from bid_sim.towns import Town, crossing_words, net_tag, resolve_town
@@ -47,6 +48,8 @@ class EpisodeSpec:
     dagger: str | None = None  # checkpoint of a BID that drives while `agent` labels (bid_sim.perturb.Dagger)
     dagger_options: dict | None = None  # how that BID drives: BIDAgent's options, as `bid evaluate` gives them
     late_brake: float = 0.0  # the teacher brakes for a car ahead of the student only this late (Dagger's late_brake)
+    stall_s: float | None = None  # the teacher starts a student standing this long (Dagger's stall_steps; None: 1.5 s)
+    perturb_turns: float = 0.0  # share of the junction turns begun late (Perturbed's turns)
 
     @property
     def name(self) -> str:
@@ -56,7 +59,8 @@ class EpisodeSpec:
 def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...],
                   seed: int, agent: str = "expert", max_steps: int | None = None,
                   perturb: float = 0.0, dagger: str | None = None, bends: bool = False,
-                  dagger_options: dict | None = None, late_brake: float = 0.0) -> list[EpisodeSpec]:
+                  dagger_options: dict | None = None, late_brake: float = 0.0,
+                  stall_s: float | None = None, perturb_turns: float = 0.0) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -74,7 +78,8 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
         raise BidError(f"{t.name} yields only {len(routes)} {kind}; record fewer episodes")
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
-                        seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options, late_brake)
+                        seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options, late_brake, stall_s,
+                        perturb_turns)
             for i in range(episodes)]
 
 
@@ -84,7 +89,9 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
     return {"route": f"{spec.route.start_edge}@{spec.route.start_pos_m}->{spec.route.goal_edge}@{spec.route.goal_pos_m}",
             "seed": str(spec.seed), "agent": spec.agent, "perturb": str(spec.perturb),
             "dagger": Path(spec.dagger).name if spec.dagger else "", "dagger_drive": drive_words(spec.dagger_options),
-            "late_brake": f"{spec.late_brake:g}" if spec.late_brake else ""}
+            "late_brake": f"{spec.late_brake:g}" if spec.late_brake else "",
+            "stall_takeover_s": "" if spec.stall_s is None else f"{spec.stall_s:g}",
+            "perturb_turns": f"{spec.perturb_turns:g}" if spec.perturb_turns else ""}
 
 
 def drive_words(options: dict | None) -> str:
@@ -98,11 +105,12 @@ def drive_words(options: dict | None) -> str:
 
 def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
-    recording) only if it is the episode `spec` plans: another --seed, --perturb, --dagger (or
-    how its student drives, or --late-brake), --agent or town would otherwise mix two recordings under one
+    recording) only if it is the episode `spec` plans: another --seed, --perturb (or --perturb-turns), --dagger (or
+    how its student drives, --late-brake or --stall-takeover), --agent or town would otherwise mix two recordings under one
     folder unnoticed. `town`, `tag`: the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
-    theirs = {**theirs, **{k: theirs.get(k, "") for k in ("dagger", "dagger_drive", "late_brake")}}
+    theirs = {**theirs, **{k: theirs.get(k, "") for k in ("dagger", "dagger_drive", "late_brake", "stall_takeover_s",
+                                                      "perturb_turns")}}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
     if theirs.get("town") != town.name:
@@ -140,15 +148,19 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
              "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}
     agent = make_agent(spec.agent)
-    if spec.perturb:
-        agent = Perturbed(agent, spec.perturb)
+    if spec.perturb or spec.perturb_turns:
+        if spec.perturb_turns:
+            facts["perturb_turns"] = plan_facts(spec)["perturb_turns"]
+        agent = Perturbed(agent, spec.perturb, spec.perturb_turns)
     if spec.dagger:
         from bid_sim.evaluate import load_agent
 
         facts["dagger"] = Path(spec.dagger).name  # the student that drove; `agent` labelled
         facts["dagger_drive"] = drive_words(spec.dagger_options)  # and how it drove
         facts["late_brake"] = plan_facts(spec)["late_brake"]  # and how late the teacher braked for cars
-        agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent, spec.late_brake)
+        facts["stall_takeover_s"] = plan_facts(spec)["stall_takeover_s"]  # and how long the student could stand
+        agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent, spec.late_brake,
+                       STALL_STEPS if spec.stall_s is None else round(spec.stall_s / DT_S))
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
@@ -162,24 +174,30 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     if spec.dagger:
         end["student_share"] = round(agent.student_share, 4)
         end["late_steps"] = agent.late_steps
+    if spec.perturb_turns:
+        end["late_turns"] = agent.late_turns
     writer.finish(end)
     return {"name": spec.name, "frames": writer.frames, "status": result.status,
             "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
-            **({"student_share": end["student_share"], "late_steps": end["late_steps"]} if spec.dagger else {})}
+            **({"student_share": end["student_share"], "late_steps": end["late_steps"]} if spec.dagger else {}),
+            **({"late_turns": end["late_turns"]} if spec.perturb_turns else {})}
 
 
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
            dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None,
-           late_brake: float = 0.0) -> dict:
+           late_brake: float = 0.0, stall_s: float | None = None, perturb_turns: float = 0.0) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
     bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
     dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger);
     dagger_options: how it drives (bid_model.agent.BIDAgent's options, as `bid evaluate` passes
     them), so that the student visits the states it visits when evaluated so; late_brake: the
     teacher brakes for a car ahead of it only once stopping 1 m short takes that share of full
-    braking (bid_sim.perturb.Dagger), so that the student comes near cars at speed.
+    braking (bid_sim.perturb.Dagger), so that the student comes near cars at speed; stall_s:
+    seconds the student may stand while the teacher would drive before the teacher starts it
+    (None: bid_sim.perturb.STALL_STEPS), so that a student's own move-off drives it off.
+    perturb_turns: the share of junction turns the expert begins late (bid_sim.perturb.Perturbed).
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
@@ -198,8 +216,10 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"--workers must be >= 1, got {workers}")
     if not 0.0 <= perturb < 1.0:
         raise BidError(f"--perturb must be a share of driving time in [0, 1), got {perturb}")
+    if not 0.0 <= perturb_turns <= 1.0:
+        raise BidError(f"--perturb-turns must be a share of the turns in [0, 1], got {perturb_turns}")
     if dagger is not None:
-        if perturb:
+        if perturb or perturb_turns:
             raise BidError("--dagger and --perturb do not go together: the student's own errors are the perturbation")
         if not Path(dagger).is_file():
             raise BidError(f"--dagger {dagger}: no such checkpoint; give a run's best.pt or checkpoints/bid_small.pt")
@@ -207,16 +227,19 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
 
         load_agent("bid", dagger, dagger_options)  # a damaged or foreign checkpoint, or an option it lacks, fails here
         dagger = str(Path(dagger).resolve())
-    elif dagger_options or late_brake:
-        what = "drive options are how the --dagger student drives" if dagger_options else \
-            "--late-brake is how late the teacher brakes for the --dagger student"
+    elif dagger_options or late_brake or stall_s is not None:
+        what = ("drive options are how the --dagger student drives" if dagger_options else
+                "--late-brake is how late the teacher brakes for the --dagger student" if late_brake else
+                "--stall-takeover is how long the --dagger student may stand")
         raise BidError(f"{what}; give --dagger CHECKPOINT or drop them")
     if not 0.0 <= late_brake <= 1.0:
         raise BidError(f"--late-brake is a share of full braking, from 0 (off) to 1; got {late_brake}")
     if late_brake and agent != "expert":
         raise BidError(f"--late-brake needs the expert as the teacher (it says what it brakes for); got --agent {agent}")
+    if stall_s is not None and not 1 <= round(stall_s / DT_S) <= MAX_STALL_STEPS:
+        raise BidError(f"--stall-takeover is seconds the student may stand, 0.1 to {MAX_STALL_STEPS * DT_S:g}; got {stall_s}")
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends,
-                          dagger_options, late_brake)
+                          dagger_options, late_brake, stall_s, perturb_turns)
     plan_town = resolve_town(town)
     plan_tag = net_tag(plan_town)
     for s in specs:
@@ -256,7 +279,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
             "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})},
             **({"student_share": round(sum(d["student_share"] for d in done) / len(done), 3)}
                if dagger and done else {}),
-            **({"late_steps": sum(d["late_steps"] for d in done)} if late_brake else {})}
+            **({"late_steps": sum(d["late_steps"] for d in done)} if late_brake else {}),
+            **({"late_turns": sum(d["late_turns"] for d in done)} if perturb_turns else {})}
 
 
 def describe(summary: dict) -> str:
@@ -269,6 +293,8 @@ def describe(summary: dict) -> str:
         lines.append(f"  the student drove {100 * summary['student_share']:.0f} % of the steps, the expert the rest")
     if "late_steps" in summary:
         lines.append(f"  the expert held back its braking for a car ahead {summary['late_steps']} steps (--late-brake)")
+    if "late_turns" in summary:
+        lines.append(f"  the expert began {summary['late_turns']} turns late (--perturb-turns)")
     lines += [f"  failed {name}: {msg}" for name, msg in summary["failed"]]
     return "\n".join(lines)
 

@@ -14,7 +14,16 @@ from bid_sim.ego import Control, EgoParams
 from bid_sim.episode import run_episode
 from bid_sim.errors import BidError
 from bid_sim.expert import Expert
-from bid_sim.perturb import GIVE_UP_STEPS, LATE_SHORT_M, PULSE_STEER, Dagger, Perturbed
+from bid_sim.perturb import (
+    GIVE_UP_STEPS,
+    LATE_SHORT_M,
+    LATE_TURN_KEEP,
+    LATE_TURN_STEPS,
+    PULSE_STEER,
+    STALL_STEPS,
+    Dagger,
+    Perturbed,
+)
 
 
 def _info(seed: int) -> EpisodeInfo:
@@ -67,6 +76,44 @@ class _Labels:
 
     def write(self, snap, frame, control):
         self.controls.append(control)
+
+
+def _turns(agent: Perturbed, commands: list[int], speed: float = 0.0) -> list[tuple[Control, Control, bool]]:
+    out = []
+    for command in commands:
+        control = agent.act(Observation(None, None, command, speed, None))
+        out.append((control, agent.label, agent.perturbed))
+    return out
+
+
+def test_late_turns_damp_the_first_steering_of_a_share_of_turns_and_labels_stay_the_experts():
+    """--perturb-turns: a late turn holds the steering back from the expert's first turning
+    step, at any speed, once per turn; the label is the expert's throughout."""
+    turning = Scripted(lambda step, obs: Control(0.6 if obs.command == 2 and step % 60 >= 8 else 0.05, 0.3))
+    agent = Perturbed(turning, 0.0, turns=1.0)
+    agent.reset(_info(0))
+    out = _turns(agent, [4] * 5 + [2] * 55)  # lane follow, then a right turn from a standstill
+    held = [i for i, (_, _, late) in enumerate(out) if late]
+    assert held and held[0] == 8 and held == list(range(8, 8 + len(held)))  # from the first turning step on
+    assert LATE_TURN_STEPS[0] <= len(held) < LATE_TURN_STEPS[1]
+    assert all(abs(out[i][0].steer) <= 0.6 * LATE_TURN_KEEP[1] + 1e-9 for i in held)
+    assert all(c.steer == label.steer for i, (c, label, _) in enumerate(out) if i not in held)
+    assert all(label.steer == 0.6 for _, label, _ in out[8:]) and agent.late_turns == 1
+    # A share of the turns, drawn apart from the pulses: the pulses stay those of --perturb alone.
+    commands = ([4] * 5 + [2] * 55) * 40
+    half, plain = Perturbed(turning, 0.3, turns=0.5), Perturbed(turning, 0.3)
+    for a in (half, plain):
+        a.reset(_info(7))
+    late, pulsed = _turns(half, commands, 5.0), _turns(plain, commands, 5.0)
+    assert 10 <= half.late_turns <= 30
+    differ = [i for i in range(len(commands)) if late[i][0] != pulsed[i][0]]
+    assert differ and all(late[i][1].steer == 0.6 and abs(late[i][0].steer) <= 0.6 * LATE_TURN_KEEP[1] + 1e-9
+                          for i in differ)  # only turning steps held back; elsewhere the same pulses
+    again = Perturbed(turning, 0.3, turns=0.5)
+    again.reset(_info(7))
+    assert _turns(again, commands, 5.0) == late  # same seed, same draws
+    with pytest.raises(BidError, match="--perturb-turns must be a share of the turns"):
+        Perturbed(turning, 0.0, turns=1.5)
 
 
 def test_episode_records_the_experts_label_not_the_executed_control(town02):
@@ -146,6 +193,25 @@ def test_dagger_gives_up_standing_off_the_route_only():
     for _ in range(3 * GIVE_UP_STEPS):  # waiting on the route (a red light) goes on
         agent.act(_standing(0.1))
     assert not agent.gave_up
+
+
+def test_dagger_starts_a_standing_student_after_stall_steps_and_its_own_move_off_counts_as_going():
+    """The teacher takes the wheel from a student that stands while it would drive after
+    stall_steps (STALL_STEPS by default); a student that moves off on its own before then drives."""
+    go = Scripted(lambda step, obs: Control(0.3, 0.6))
+    for stall in (STALL_STEPS, 80):
+        agent = Dagger(Scripted(lambda step, obs: Control(0.0, -0.2)), go, stall_steps=stall)
+        agent.reset(_info(0))
+        driven = [agent.act(_standing(0.0)) for _ in range(stall + 1)]
+        assert all(c.accel == -0.2 for c in driven[:stall - 1]) and driven[-1] == Control(0.3, 0.6), stall
+    # Moving off after 50 steps (as --move-off 5 would): with the gate at 80 steps the student drives on.
+    agent = Dagger(Scripted(lambda step, obs: Control(0.1, 0.5 if step >= 50 else -0.2)), go, stall_steps=80)
+    agent.reset(_info(0))
+    driven = [agent.act(_standing(0.0)) for _ in range(120)]
+    assert all(c.steer == 0.1 for c in driven) and agent.student_share == 1.0
+    for bad in (0, 601):
+        with pytest.raises(BidError, match="stall_steps is how long the student may stand"):
+            Dagger(Expert(), go, stall_steps=bad)
 
 
 class _Braking:
@@ -250,8 +316,9 @@ def test_bid_record_dagger_drives_the_student_with_the_drive_flags_given(tmp_pat
 
 
 def test_bid_record_late_brake_is_recorded_and_kept_to(tmp_path, capsys):
-    """bid record --dagger --late-brake: the recordings say how late the teacher braked, and a
-    folder is finished only with the same; without --dagger, or with another teacher, refused."""
+    """bid record --dagger --late-brake (and --stall-takeover): the recordings say how late the
+    teacher braked (and started the student), and a folder is finished only with the same;
+    without --dagger, or with another teacher, refused."""
     from bid_model.recordings import _index, find_recordings
     from bid_sim.cli import main as bid
 
@@ -269,9 +336,41 @@ def test_bid_record_late_brake_is_recorded_and_kept_to(tmp_path, capsys):
     assert "late_brake '0.5' here, 'none' planned" in capsys.readouterr().err
     assert record(tmp_path / "late", *late) == 0  # the same plan: found done
     capsys.readouterr()
+    assert record(tmp_path / "late", *late, "--stall-takeover", "10") == 2  # another gate: another plan
+    assert "stall_takeover_s 'none' here, '10' planned" in capsys.readouterr().err
+    assert record(tmp_path / "stall", *late, "--stall-takeover", "10") == 0
+    capsys.readouterr()
+    assert _index(find_recordings(tmp_path / "stall")[0], keep_jpeg=False).facts[0]["stall_takeover_s"] == "10"
     for flags, says in ((("--late-brake", "0.5"), "--late-brake is how late the teacher brakes for the --dagger"),
+                        (("--stall-takeover", "10"), "--stall-takeover is how long the --dagger student may stand"),
+                        ((*late, "--stall-takeover", "0"), "--stall-takeover is seconds the student may stand, 0.1 to 60"),
                         ((*late[:2], "--late-brake", "2"), "a share of full braking, from 0 (off) to 1; got 2"),
                         ((*late, "--agent", "lanefollow"), "--late-brake needs the expert as the teacher")):
+        assert record(tmp_path / "x", *flags) == 2, flags
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+
+
+def test_bid_record_perturb_turns_is_recorded_and_kept_to(tmp_path, capsys):
+    """bid record --perturb-turns: the recordings say the share, the summary counts the late
+    turns, and a folder is finished only with the same; with --dagger or out of [0, 1], refused."""
+    from bid_model.recordings import _index, find_recordings
+    from bid_sim.cli import main as bid
+
+    def record(out, *flags):
+        return bid(["record", "--town", "02", "--episodes", "1", "--densities", "none", "--weathers", "ClearNoon",
+                    "--max-steps", "300", "--workers", "1", *flags, "--out", str(out), "--json"])
+
+    assert record(tmp_path / "turns", "--perturb-turns", "1") == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["recorded"] == 1 and summary["late_turns"] >= 0
+    files, _ = find_recordings(tmp_path / "turns")
+    assert _index(files, keep_jpeg=False).facts[0]["perturb_turns"] == "1"
+    assert record(tmp_path / "turns") == 2
+    assert "perturb_turns '1' here, 'none' planned" in capsys.readouterr().err
+    for flags, says in ((("--perturb-turns", "1.5"), "--perturb-turns must be a share of the turns in [0, 1]"),
+                        (("--perturb-turns", "0.5", "--dagger", "checkpoints/bid_small.pt"),
+                         "--dagger and --perturb do not go together")):
         assert record(tmp_path / "x", *flags) == 2, flags
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err, err
