@@ -201,6 +201,8 @@ class TrainConfig:
     accel_quantile: float = 0.5  # the quantile of accel the loss fits: 0.5 is L1 (losses.l1_loss)
     speed_noise: float = 0.0  # σ of the log-normal factor the speed input is trained with (train.noisy_speed)
     train_only: tuple[str, ...] = ()  # the parts trained (BID.parts), the rest frozen; () all (train.freeze_all_but)
+    # With train_only CPC from --init: the accel label is the init control head's own (train.KeptAccel).
+    keep_accel: bool = False
     seed: int = 0
     workers: int = 2
     synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`

@@ -26,6 +26,7 @@ Each epoch reseeds from (seed, epoch), so a resumed run repeats an uninterrupted
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import dataclasses
 import importlib.metadata
@@ -123,6 +124,33 @@ def set_train_mode(model: BID, tc: TrainConfig) -> None:
     parts = model.parts()
     for name in tc.train_only:
         parts[name].train()
+
+
+class KeptAccel:
+    """`bid train --keep-accel`: the accel label of every training sample is the one the --init
+    checkpoint's control head (CPC) gives on the same features, so that CPC fitted alone
+    (--train-only CPC) to new steering labels, say a DAgger round's, keeps its throttle and
+    brake as they were. The last control head fitted on a DAgger round's accel labels learnt to
+    creep into queues (docs/experiments.md); the steering of the same rounds is what is wanted."""
+
+    def __init__(self, model: BID, state: dict[str, torch.Tensor]):
+        prefix = "areas.CPC."
+        cpc = model.areas["CPC"]
+        self.reference = copy.deepcopy(cpc).eval().requires_grad_(False)
+        self.reference.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+        self._tokens: torch.Tensor | None = None
+        cpc.register_forward_hook(self._keep)
+
+    def _keep(self, module: nn.Module, inputs: tuple[torch.Tensor, ...], output: torch.Tensor) -> None:
+        self._tokens = inputs[0]
+
+    def target(self, target: torch.Tensor) -> torch.Tensor:
+        """(steer, accel) labels with accel the reference's on the features of the last forward."""
+        if self._tokens is None:
+            raise RuntimeError("KeptAccel.target before a forward of the model")
+        with torch.no_grad():
+            accel = self.reference(self._tokens.detach())[:, 1].to(target.dtype)
+        return torch.stack((target[:, 0], accel), dim=1)
 
 
 def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Tensor:
@@ -552,8 +580,9 @@ def _write_metrics(history: list[dict[str, Any]], path: Path) -> None:
 
 
 def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, tc: TrainConfig,
-                device: torch.device, bar_desc: str | None) -> tuple[float, int]:
-    """One pass over `loader`; (sum of batch losses × batch sizes, samples) of this process."""
+                device: torch.device, bar_desc: str | None, kept: KeptAccel | None = None) -> tuple[float, int]:
+    """One pass over `loader`; (sum of batch losses × batch sizes, samples) of this process.
+    `kept`: the accel labels are its reference control head's (--keep-accel)."""
     base = net.module if isinstance(net, nn.parallel.DistributedDataParallel) else net
     set_train_mode(base, tc)
     apart = base.config.hazard_sc and tc.lambda_hazard > 0  # the head and SC fitted each alone
@@ -577,6 +606,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
         with _autocast(device):
             pred, ahead, hazard, second = _split_outputs(
                 net(*inputs, forecast=tc.lambda_forecast > 0, hazard=tc.lambda_hazard > 0, **kwargs), tc)
+        if kept is not None:
+            target = kept.target(target)
         loss = l1_loss(pred, target, tc)
         if ahead is not None:
             loss = loss + tc.lambda_forecast * forecast_loss(ahead, batch["future_speed"].to(device))
@@ -790,6 +821,10 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
             raise BidError(f"--init {init} holds a different model ({', '.join(diff)} differ); "
                            f"train with its preset and flags, or start from scratch")
     tc = config.train
+    if tc.keep_accel and tc.train_only != ("CPC",):
+        raise BidError("--keep-accel holds the control head's accel while CPC alone learns: add --train-only CPC")
+    if tc.keep_accel and start_from is None and ckpt is None:
+        raise BidError("--keep-accel keeps the accel of the --init checkpoint's control head: add --init CHECKPOINT")
     if tc.train_only:  # a wrong name is refused before the data is opened
         with torch.device("meta"):
             freeze_all_but(BID(config.model), tc.train_only)
@@ -840,6 +875,17 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         fresh = warm_start_move_off(model, state, warm_start_crossing(model, state, fresh))
     elif start_from is not None:
         model.load_state_dict(start_from["model"])
+    kept = None
+    if tc.keep_accel:  # the reference is the init checkpoint's control head, resumed or not
+        if start_from is not None:
+            reference = start_from["model"]
+        else:
+            init_path = Path(ckpt.get("init", {}).get("path", ""))
+            if not init_path.is_file():
+                raise BidError(f"--keep-accel: the run's --init checkpoint {init_path} is gone; "
+                               "put it back to resume, or start a new run")
+            reference = load_checkpoint(init_path)["model"]
+        kept = KeptAccel(model, reference)
 
     meta = {"git_hash": git_hash(), "version": _version(), "torch": str(torch.__version__)}
     if start_from is not None:
@@ -884,7 +930,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         lr = opt.param_groups[0]["lr"]
         t0 = time.perf_counter()
         desc = f"epoch {epoch + 1}/{tc.epochs}" if progress and dist.main else None
-        loss_sum, samples = _all_sum(train_epoch(net, loader, opt, tc, dev, desc), dist, dev)
+        loss_sum, samples = _all_sum(train_epoch(net, loader, opt, tc, dev, desc, kept), dist, dev)
         if dist.world > 1:
             _average_buffers(model, dist)
         train_s = time.perf_counter() - t0
@@ -978,7 +1024,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--second-bumper-weight": args.second_bumper_weight,
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
-             "--shift": args.shift, "--train-only": args.train_only}
+             "--shift": args.shift, "--train-only": args.train_only,
+             "--keep-accel": args.keep_accel or None}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -1131,6 +1178,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not names:
             raise BidError("--train-only names the parts to train, e.g. --train-only hazard or MPC,CPC")
         tc = dataclasses.replace(tc, train_only=names)
+    if args.keep_accel:
+        tc = dataclasses.replace(tc, keep_accel=True)
     return RunConfig(model, tc)
 
 

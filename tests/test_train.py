@@ -14,16 +14,19 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from torch.utils.data import default_collate
 
 from bid_model.augment import photometric
 from bid_model.checkpoint import average_checkpoints, load_checkpoint, load_model, save_checkpoint
 from bid_model.config import RunConfig, model_config_from_dict, tiny, with_variant
-from bid_model.data import synthetic_split
+from bid_model.data import SyntheticDriving, synthetic_split
 from bid_model.model import BID
 from bid_model.recordings import RecordingDataset
 from bid_model.train import (
     METRIC_COLUMNS,
     EpisodeShardSampler,
+    KeptAccel,
+    batch_inputs,
     busy_cores,
     hazard_loss,
     item_episodes,
@@ -288,6 +291,50 @@ def test_train_only_fits_the_parts_named_and_leaves_the_rest_as_it_was(tmp_path,
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err
     assert not (tmp_path / "c").exists()
+
+
+def test_keep_accel_fits_cpc_to_the_steering_labels_and_holds_its_accel(tmp_path, capsys):
+    """--keep-accel: the accel labels are the --init control head's own on the same features;
+    CPC fitted alone to them moves its steering and keeps its accel, a resumed run included."""
+    first = quick_run(1)
+    train(tmp_path / "a", first, synthetic=True, progress=False)
+    init = tmp_path / "a" / "last.pt"
+    model, _ = load_model(init)
+    data = SyntheticDriving(8, first.model.frame_hw, seed=3)
+    inputs, _ = batch_inputs(default_collate([data[i] for i in range(8)]), torch.device("cpu"))
+
+    def control(m):
+        m.eval()
+        with torch.no_grad():
+            return m(*inputs)
+
+    kept = KeptAccel(model, load_checkpoint(init)["model"])
+    before = control(model)
+    labels = torch.tensor([[0.5, 0.9]] * 8)
+    target = kept.target(labels)  # the init's own accel, the steering label as given
+    assert torch.equal(target[:, 0], labels[:, 0]) and torch.allclose(target[:, 1], before[:, 1])
+
+    lively = dataclasses.replace(first.train.with_epochs(2), train_only=("CPC",), lr=5e-3)
+    keep = RunConfig(first.model, dataclasses.replace(lively, keep_accel=True))
+    train(tmp_path / "keep", keep, synthetic=True, progress=False, init=init)
+    train(tmp_path / "free", RunConfig(first.model, lively), synthetic=True, progress=False, init=init)
+    after = {name: control(load_model(tmp_path / name / "last.pt")[0]) for name in ("keep", "free")}
+    drift = {name: float((out[:, 1] - before[:, 1]).abs().mean()) for name, out in after.items()}
+    assert float((after["keep"][:, 0] - before[:, 0]).abs().mean()) > 1e-3  # the steering learnt
+    assert drift["keep"] < 0.5 * drift["free"], drift
+    assert load_checkpoint(tmp_path / "keep" / "last.pt")["config"]["train"]["keep_accel"] is True
+    # Resumed, the reference is the run's --init checkpoint again: as uninterrupted.
+    train(tmp_path / "half", keep, synthetic=True, progress=False, init=init, stop_after=1)
+    train(tmp_path / "half", synthetic=True, resume=True, progress=False)
+    straight, resumed = (load_checkpoint(tmp_path / n / "last.pt")["model"] for n in ("keep", "half"))
+    assert all(torch.equal(straight[k], resumed[k]) for k in straight)
+    # Without CPC alone, or without a checkpoint to keep: one line each.
+    for flags, says in ((("--keep-accel", "--init", str(init)), "add --train-only CPC"),
+                        (("--keep-accel", "--train-only", "CPC"), "add --init CHECKPOINT")):
+        assert bid(["train", "--preset", "tiny", "--synthetic", *flags, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    assert not (tmp_path / "x").exists()
 
 
 def test_init_starts_another_variant_from_the_areas_they_share(tmp_path, capsys):
