@@ -552,6 +552,7 @@ def open_recordings(folder: str | os.PathLike, frame_hw: tuple[int, int], val_fr
         "train_shown_still": int(still.sum()), "motion_drop": motion_drop,
         "train_shown_motionless": int(train.motionless.sum()),
         "perturbed_recordings": sum(1 for f in index.facts if float(f.get("perturb", 0) or 0) > 0),
+        "late_turn_recordings": sum(1 for f in index.facts if float(f.get("perturb_turns") or 0) > 0),
         "train_episodes": len(train_eps), "val_episodes": [str(files[e].relative_to(folder)) for e in val_eps],
         "towns": dict(towns), "weathers": dict(weathers), "densities": dict(densities),
         "frame_hw": list(frame_hw), "cache": str(cache_path) if cache_path else None,

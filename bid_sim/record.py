@@ -220,7 +220,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"--perturb-turns must be a share of the turns in [0, 1], got {perturb_turns}")
     if dagger is not None:
         if perturb or perturb_turns:
-            raise BidError("--dagger and --perturb do not go together: the student's own errors are the perturbation")
+            raise BidError("--dagger and --perturb (or --perturb-turns) do not go together: the student's own "
+                           "errors are the perturbation")
         if not Path(dagger).is_file():
             raise BidError(f"--dagger {dagger}: no such checkpoint; give a run's best.pt or checkpoints/bid_small.pt")
         from bid_sim.evaluate import load_agent

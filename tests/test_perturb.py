@@ -366,11 +366,15 @@ def test_bid_record_perturb_turns_is_recorded_and_kept_to(tmp_path, capsys):
     assert summary["recorded"] == 1 and summary["late_turns"] >= 0
     files, _ = find_recordings(tmp_path / "turns")
     assert _index(files, keep_jpeg=False).facts[0]["perturb_turns"] == "1"
+    from bid_model.recordings import open_recordings
+
+    description = open_recordings(tmp_path / "turns", (32, 96), 0.0, 0, cache=False)[2]
+    assert description["late_turn_recordings"] == 1 and description["perturbed_recordings"] == 0
     assert record(tmp_path / "turns") == 2
     assert "perturb_turns '1' here, 'none' planned" in capsys.readouterr().err
     for flags, says in ((("--perturb-turns", "1.5"), "--perturb-turns must be a share of the turns in [0, 1]"),
                         (("--perturb-turns", "0.5", "--dagger", "checkpoints/bid_small.pt"),
-                         "--dagger and --perturb do not go together")):
+                         "--dagger and --perturb (or --perturb-turns) do not go together")):
         assert record(tmp_path / "x", *flags) == 2, flags
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err, err
