@@ -82,15 +82,17 @@ class Perturbed:
         if self._pulse is None and obs.speed_mps > MIN_SPEED_MPS and start < self._start_p:
             ramp = 1.0 - np.abs(np.linspace(-1.0, 1.0, int(steps) + 2)[1:-1])  # triangle, no zero ends
             self._pulse, self._at = sign * peak * ramp, 0
-        self.perturbed = self._pulse is not None or late is not None
-        if self._pulse is None:
-            return control if late is None else Control(control.steer * late, control.accel)
-        offset = float(self._pulse[self._at])
-        self._at += 1
-        if self._at == len(self._pulse):
-            self._pulse = None
-        if late is not None:  # the late turn holds the wheel; the pulse runs out meanwhile
+        pulse = self._pulse
+        self.perturbed = pulse is not None or late is not None
+        if pulse is not None:
+            offset = float(pulse[self._at])
+            self._at += 1
+            if self._at == len(pulse):
+                self._pulse = None
+        if late is not None:  # the late turn holds the wheel; a pulse runs out meanwhile
             return Control(control.steer * late, control.accel)
+        if pulse is None:
+            return control
         return Control(float(np.clip(control.steer + offset, -1.0, 1.0)), control.accel)
 
     def _late_turn(self, command: int, control: Control) -> float | None:

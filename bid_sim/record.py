@@ -140,25 +140,26 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
     town = resolve_town(spec.town)
     town_map = load_town_map(town)
     renderer = Renderer(town_map, weather=spec.weather, seed=spec.seed)
+    plan = plan_facts(spec)
     facts = {"town": town.name, "town_source": spec.town, "town_net": net_tag(town),
              "crossing_width_m": f"{town.crossing_width_m:g}",
              "zebra_width_m": "" if town.zebra_width_m is None else f"{town.zebra_width_m:g}",
-             "route": plan_facts(spec)["route"], "episode": str(spec.index),
+             "route": plan["route"], "episode": str(spec.index),
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
              "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}
     agent = make_agent(spec.agent)
     if spec.perturb or spec.perturb_turns:
         if spec.perturb_turns:
-            facts["perturb_turns"] = plan_facts(spec)["perturb_turns"]
+            facts["perturb_turns"] = plan["perturb_turns"]
         agent = Perturbed(agent, spec.perturb, spec.perturb_turns)
     if spec.dagger:
         from bid_sim.evaluate import load_agent
 
         facts["dagger"] = Path(spec.dagger).name  # the student that drove; `agent` labelled
         facts["dagger_drive"] = drive_words(spec.dagger_options)  # and how it drove
-        facts["late_brake"] = plan_facts(spec)["late_brake"]  # and how late the teacher braked for cars
-        facts["stall_takeover_s"] = plan_facts(spec)["stall_takeover_s"]  # and how long the student could stand
+        facts["late_brake"] = plan["late_brake"]  # and how late the teacher braked for cars
+        facts["stall_takeover_s"] = plan["stall_takeover_s"]  # and how long the student could stand
         agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent, spec.late_brake,
                        STALL_STEPS if spec.stall_s is None else round(spec.stall_s / DT_S))
     heads = [h.position for h in town_map.signal_heads]
