@@ -94,14 +94,14 @@ def _binding(need: float) -> float:
     return need if need >= BIND_SHARE else 0.0
 
 
-def light_brake(nearness: float, speed_mps: float) -> float:
-    """Braking (0..1) to stop LIGHT_SHORT_M short of the stop line of the red or amber light the
+def light_brake(nearness: float, speed_mps: float, short_m: float = LIGHT_SHORT_M) -> float:
+    """Braking (0..1) to stop `short_m` (LIGHT_SHORT_M) short of the stop line of the red or amber light the
     hazard head sees at `nearness`, once that takes BIND_SHARE or more. It does not hold a
     standing ego (moving off is the control head's call): holding while the head saw a light
     within HOLD_M left 6 of the first 27 episodes standing ("blocked"; docs/experiments.md)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
-    return _binding(_stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, LIGHT_SHORT_M))
+    return _binding(_stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, short_m))
 
 
 def crossing_brake(nearness: float, speed_mps: float) -> float:
@@ -252,6 +252,17 @@ class BIDAgent:
     both). The head reads the speed input, and standing it reads a vehicle 7-8 m ahead in an
     empty street (the expert stands mostly behind one); SC reads the frames alone
     (docs/experiments.md, "The hazard head reads the speed").
+    light_still: while the ego is slower than START_MPS, the red light the light brake and move-off
+    read is the one the first head reads from frame t paired with itself (a second forward pass),
+    the lamp being a still thing: from two frames the network reads others moving in the junction
+    as cross traffic flowing, that is a red light. At a stop line with the green lamp in view and
+    people walking on the crossings it read red at 0.4-0.9 for three minutes; from frame t alone,
+    0.0 (route 10, docs/experiments.md, "Red from motion").
+    light_short: metres; with light_brake, stop this far short of a red light's stop line
+    (LIGHT_SHORT_M, the expert's 1 m, when None). At 1 m the lamp's red is above the cameras' view
+    (the head 3.5 m up, 1 m right of the lane, the cameras 1.6 m up and 1.5 m behind the front
+    bumper, 60° high); from about 2 m it is whole, and the green lamp is read there (docs/experiments.md).
+    The control head may still creep closer: below BIND_SHARE the light brake asks nothing.
     """
 
     uses_camera = True
@@ -264,7 +275,8 @@ class BIDAgent:
                  start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None,
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
                  turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
-                 vehicle_second_head: bool = False):
+                 vehicle_second_head: bool = False, light_still: bool = False,
+                 light_short: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -336,6 +348,18 @@ class BIDAgent:
             raise BidError("vehicle_second_head is the vehicle the vehicle brake and move-off read; add "
                            "vehicle_brake or move_off, or drop it")
         self.vehicle_second_head = vehicle_second_head
+        if light_still and not (light_brake or move_off):
+            raise BidError("light_still is the red light the light brake and move-off read; add light_brake "
+                           "or move_off, or drop it")
+        if light_still and move_off_light:
+            raise BidError("move_off_light reads the move-off head's red light, light_still the first head's "
+                           "from frame t alone; keep one")
+        self.light_still = light_still
+        if light_short is not None and not light_brake:
+            raise BidError("light_short is where the light brake stops the ego; add light_brake, or drop it")
+        if light_short is not None and not 0 <= light_short <= HAZARD_AHEAD_M / 2:
+            raise BidError(f"light_short is a distance from 0 to {HAZARD_AHEAD_M / 2:g} m; got {light_short}")
+        self.light_short_m = LIGHT_SHORT_M if light_short is None else light_short
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -438,6 +462,10 @@ class BIDAgent:
                                   else (*own[:k], *near[k:]))
             if self.move_off_sc:  # SC's pedestrian and vehicle, the red light as above
                 clear_near = (*(float(x) for x in self.model.sc_near(hazard)[0]), *clear_near[k:])
+            if self.light_still and v < START_MPS:  # the red light from frame t alone, for both
+                _, still = self.model(frame, frame, cmd, speed, hazard=True, hazard_apart=self.move_off_sc)
+                light = float(still[0, k])
+                near, clear_near = (*near[:k], light, *near[k + 1:]), (*clear_near[:k], light, *clear_near[k + 1:])
             if self.memory is not None:
                 near = clear_near = self.memory.update(near, v)
             self.near = near
@@ -445,7 +473,7 @@ class BIDAgent:
                 accel = self._move_off(accel, v, clear_near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
                        self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None),
-                       self.light_brake * light_brake(near[2], v) if self.light_brake > 0 else 0.0,
+                       self.light_brake * light_brake(near[2], v, self.light_short_m) if self.light_brake > 0 else 0.0,
                        self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
             if need > 0:
                 overrode = accel >= 0

@@ -136,7 +136,8 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
              "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light,
-             "vehicle_second_head": args.vehicle_second_head}
+             "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
+             "light_short": args.light_short}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -278,6 +279,14 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="--agent bid with --vehicle-brake or --move-off and a second head (bid train "
                         "--move-off-head --move-off-speed): the vehicle they read is that head's, the "
                         "pedestrian and red light the first head's (bid_model/agent.py)")
+    g.add_argument("--light-still", action="store_true", default=None,
+                   help="--agent bid with --light-brake or --move-off: below 2 m/s the red light they read "
+                        "is the one read from frame t alone (motion in the junction reads as red) "
+                        "(bid_model/agent.py)")
+    g.add_argument("--light-short", type=float, metavar="M",
+                   help="--agent bid with --light-brake: stop this far short of a red light's stop line "
+                        "(default 1, the expert's; at 1 m the red lamp is above the cameras' view) "
+                        "(bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -456,13 +456,21 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     # stop 1 m short; a standing ego is not held (moving off is the control head's call).
     assert light_brake(0.0, 6.0) == 0.0 and light_brake(0.8, 6.0) == pytest.approx(36 / 8 / EgoParams.max_brake_mps2)
     assert light_brake(0.8, 0.0) == 0.0 and light_brake(0.8, 0.5) == 0.0  # creeping up: below BIND_SHARE
+    # With light_short 2.5 it stops 2.5 m short, where the camera sees the red lamp whole.
+    assert light_brake(0.8, 6.0, 2.5) == pytest.approx(36 / 5 / EgoParams.max_brake_mps2)
     lights = BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0)
-    for agent in (lights, both):
+    farther = BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0, light_short=2.5)
+    for agent in (lights, both, farther):
         with torch.no_grad():
             agent.model.hazard_head[-1].weight.zero_()
             agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.0, 0.8]))
         agent.reset(None)
     assert lights.act(obs).accel == pytest.approx(min(free, -light_brake(0.8, 6.0)), abs=1e-5)
+    assert farther.act(obs).accel == pytest.approx(min(free, -light_brake(0.8, 6.0, 2.5)), abs=1e-5)
+    assert farther.act(obs).accel < lights.act(obs).accel
+    for kwargs, says in (({}, "add light_brake"), ({"light_brake": 1.0, "light_short": 20.0}, "from 0 to 12.5 m")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(tmp_path / "hz" / "last.pt", **{"light_short": 2.5, **kwargs})
     assert both.act(obs).accel == pytest.approx(free, abs=1e-5)
     # move_off: a control head that stands (accel forced to about -0.76) is overruled once the
     # ego has stood 0.3 s (3 steps) with the head seeing nothing, and not while it sees a light.
@@ -828,3 +836,48 @@ def test_vehicle_second_head_brakes_and_moves_off_by_the_second_heads_vehicle(tm
                          ({}, "add vehicle_brake or move_off")):
         with pytest.raises(BidError, match=says or "has none"):
             BIDAgent(shipped if says is None else tmp_path / "two.pt", vehicle_second_head=True, **kwargs)
+
+
+def test_light_still_reads_the_red_light_from_frame_t_alone_below_start_speed(tmp_path, two_heads, capsys):
+    """`bid evaluate --light-still`: below START_MPS the red light the light brake and move-off read
+    is the first head's on frame t paired with itself; the pedestrian and vehicle, the control
+    head and, at START_MPS or faster, the red light too are read from both frames as before."""
+    import numpy as np
+    import torch
+
+    from bid_model.agent import START_MPS, light_brake
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    still = BIDAgent(shipped, light_brake=1, move_off=8, light_still=True)
+    plain = BIDAgent(shipped, light_brake=1, move_off=8)
+    rng = np.random.default_rng(6)
+    prev_img, img = (rng.integers(0, 255, (300, 900, 3), dtype=np.uint8) for _ in range(2))
+    for speed in (0.0, 1.5, START_MPS, 5.0):
+        controls = []
+        for agent in (still, plain):
+            agent.reset(None)
+            agent.act(Observation(prev_img, prev_img, 3, speed, None))
+            controls.append(agent.act(Observation(img, img, 3, speed, None)))
+        frame, prev, cmd, _ = still._inputs
+        v = torch.tensor([speed])
+        with torch.inference_mode():
+            _, pair = plain.model(frame, prev, cmd, v, hazard=True)
+            _, alone = plain.model(frame, frame, cmd, v, hazard=True)
+        assert not torch.allclose(pair[0, 2], alone[0, 2])
+        assert still.near[:2] == pytest.approx(plain.near[:2])
+        assert plain.near[:2] == pytest.approx(pair[0, :2].tolist())
+        light = alone if speed < START_MPS else pair
+        assert still.near[2] == pytest.approx(float(light[0, 2]))
+        assert plain.near[2] == pytest.approx(float(pair[0, 2]))
+        assert still.head_accel == pytest.approx(plain.head_accel)
+        need = light_brake(float(light[0, 2]), speed)
+        brake = min(still.head_accel, -need) if need > 0 else still.head_accel
+        assert controls[0].accel == pytest.approx(max(brake, -1.0))
+    two_heads()
+    for path, kwargs, says in ((shipped, {}, "add light_brake or move_off"),
+                               (tmp_path / "two.pt", {"move_off": 8, "move_off_light": True}, "keep one")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(path, light_still=True, **kwargs)
+    assert main(["evaluate", "--agent", "expert", "--light-still", "--out", str(tmp_path / "x")]) == 2
+    assert "--light-still is an option of --agent bid" in capsys.readouterr().err
