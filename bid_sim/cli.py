@@ -141,9 +141,10 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
-    # A hold or a wait of 0 means something (never hold, no wait), so it is kept where the other options' 0 is dropped.
+    # A hold, a wait or a gap of 0 means something (never hold, no wait, stop at the line), so it is kept where
+    # the other options' 0 is dropped.
     return {k: v for k, v in given.items()
-            if v or (k in ("pedestrian_hold", "move_off_braked") and v is not None)} or None
+            if v or (k in ("pedestrian_hold", "move_off_braked", "light_short") and v is not None)} or None
 
 
 def _evaluate(args: argparse.Namespace) -> int:

@@ -881,3 +881,7 @@ def test_light_still_reads_the_red_light_from_frame_t_alone_below_start_speed(tm
             BIDAgent(path, light_still=True, **kwargs)
     assert main(["evaluate", "--agent", "expert", "--light-still", "--out", str(tmp_path / "x")]) == 2
     assert "--light-still is an option of --agent bid" in capsys.readouterr().err
+    from bid_sim.cli import _drive_options, build_parser
+
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--light-still", "--light-short", "0"])
+    assert _drive_options(args, None) == {"light_still": True, "light_short": 0.0}  # a gap of 0 is kept
