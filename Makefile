@@ -25,9 +25,12 @@ CHECKPOINT ?= $(SHIPPED)
 # move a standing ego off once they have seen nothing within 8 m for 8 s (README "Results"); a
 # pedestrian holds a slow ego standing only when seen within 6 m (SC reads some waiting on the
 # kerb as in the path 7 m ahead); and it brakes above 9 m/s (at Town02's 11.2 m/s limit it
-# drove past a bend it saw too late). Another CHECKPOINT drives on its control head alone
-# unless DRIVE gives flags; `make evaluate DRIVE=` so drives the shipped one.
-SHIPPED_DRIVE := --vehicle-brake 2 --light-brake 1 --move-off 8 --hazard-brake 1 --pedestrian-hold 6 --max-speed 9
+# drove past a bend it saw too late). Below 2 m/s the red light the light brake and move-off
+# read comes from frame t alone (`--light-still`): seen from a standing ego, others' motion
+# between frames t-1 and t read as red at a green light (docs/experiments.md, "Red from motion").
+# Another CHECKPOINT drives on its control head alone unless DRIVE gives flags; `make evaluate
+# DRIVE=` so drives the shipped one.
+SHIPPED_DRIVE := --vehicle-brake 2 --light-brake 1 --move-off 8 --hazard-brake 1 --pedestrian-hold 6 --max-speed 9 --light-still
 DRIVE ?= $(if $(filter $(SHIPPED),$(CHECKPOINT)),$(SHIPPED_DRIVE))
 WEATHERS ?= test
 SEEDS ?= 3

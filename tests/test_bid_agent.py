@@ -383,15 +383,18 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
 
     root = Path(__file__).resolve().parents[1]
     makefile = (root / "Makefile").read_text().splitlines()
-    flags = next(ln for ln in makefile if ln.startswith("SHIPPED_DRIVE :=")).split(":=", 1)[1].split()
-    options = {flag.removeprefix("--").replace("-", "_"): float(value)
-               for flag, value in zip(flags[::2], flags[1::2], strict=True)}
+    words = next(ln for ln in makefile if ln.startswith("SHIPPED_DRIVE :=")).split(":=", 1)[1].split()
+    options: dict[str, float | bool] = {}
+    for i, word in enumerate(words):  # a flag takes the value after it, or is a switch
+        if word.startswith("--"):
+            valued = i + 1 < len(words) and not words[i + 1].startswith("--")
+            options[word.removeprefix("--").replace("-", "_")] = float(words[i + 1]) if valued else True
     assert set(options) == {"vehicle_brake", "light_brake", "move_off", "hazard_brake", "pedestrian_hold",
-                            "max_speed"}
+                            "max_speed", "light_still"}
     shipped = root / "checkpoints" / "bid_small.pt"
     agent = BIDAgent(shipped, **options)
     assert agent.light_brake == agent.hazard_brake == 1.0 and agent.vehicle_brake == 2.0 and agent.move_off_steps == 80
-    assert agent.pedestrian_hold_m == 6.0 and agent.max_speed == 9.0
+    assert agent.pedestrian_hold_m == 6.0 and agent.max_speed == 9.0 and agent.light_still is True
     assert agent.config.model.hazard_sc
     plain = BIDAgent(shipped)
     frame, prev, cmd, speed = one_input(plain.hw, seed=0, command=3, speed_mps=3.0)
