@@ -263,6 +263,12 @@ class BIDAgent:
     (the head 3.5 m up, 1 m right of the lane, the cameras 1.6 m up and 1.5 m behind the front
     bumper, 60° high); from about 2 m it is whole, and the green lamp is read there (docs/experiments.md).
     The control head may still creep closer: below BIND_SHARE the light brake asks nothing.
+    move_off_green: seconds; with move_off and light_brake, the wait before moving off after a
+    stop at a red light: the head has read one within CLEAR_M since the ego last drove at
+    START_MPS or faster without (the light brake stops binding near 2 m/s, and the control head
+    rolls the ego the last metres). Standing 2.4 m short of a line at green (`light_short` 2.5),
+    frame t alone read the light 0.2 but the control head did not go, so every light cost
+    move_off's whole wait once it turned green (docs/experiments.md).
     """
 
     uses_camera = True
@@ -276,7 +282,7 @@ class BIDAgent:
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
                  turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
                  vehicle_second_head: bool = False, light_still: bool = False,
-                 light_short: float | None = None):
+                 light_short: float | None = None, move_off_green: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -360,6 +366,12 @@ class BIDAgent:
         if light_short is not None and not 0 <= light_short <= HAZARD_AHEAD_M / 2:
             raise BidError(f"light_short is a distance from 0 to {HAZARD_AHEAD_M / 2:g} m; got {light_short}")
         self.light_short_m = LIGHT_SHORT_M if light_short is None else light_short
+        if move_off_green is not None and not (move_off and light_brake):
+            raise BidError("move_off_green is move_off's wait after a stop at a red light; add move_off and "
+                           "light_brake, or drop it")
+        if move_off_green is not None and not 0 <= move_off_green <= move_off:
+            raise BidError(f"move_off_green is a wait in seconds, from 0 to move_off ({move_off:g}); got {move_off_green}")
+        self.green_steps = round(move_off_green / DT_S) if move_off_green is not None else None
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -398,6 +410,7 @@ class BIDAgent:
         self._moving_off = False
         self._since_override = 10**9  # steps since the brakes last overrode an accel >= 0, for move_off_braked
         self._braked_stop = False  # the ego stands where the brakes stopped it
+        self._light_approach = False  # a red light read within CLEAR_M since the ego last drove on without
         # The last step's control-head accel and the nearness the brakes read (for inspection:
         # bid_model.shadow); () when no brake or move-off reads the hazard outputs.
         self.head_accel = 0.0
@@ -410,6 +423,7 @@ class BIDAgent:
         self._moving_off = False
         self._since_override = 10**9
         self._braked_stop = False
+        self._light_approach = False
         self._stand_steps = 0
         self._start_left_m = 0.0
         self.head_accel, self.near = 0.0, ()
@@ -469,6 +483,10 @@ class BIDAgent:
             if self.memory is not None:
                 near = clear_near = self.memory.update(near, v)
             self.near = near
+            if self.green_steps is not None:
+                red_near = near[2] >= 1.0 - CLEAR_M / HAZARD_AHEAD_M
+                if red_near or v >= START_MPS:
+                    self._light_approach = red_near
             if self.move_off_steps:
                 accel = self._move_off(accel, v, clear_near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
@@ -497,6 +515,8 @@ class BIDAgent:
         elif self.braked_steps is not None and self._since_override <= self._braked_stop_steps:
             self._braked_stop = True  # came to stand (or stands on) where the brakes held it
         wait = self.braked_steps if self._braked_stop else self.move_off_steps
+        if self.green_steps is not None and self._light_approach:  # stands at a red light, or one misread
+            wait = min(wait, self.green_steps)
         self._still_steps = self._still_steps + 1 if speed_mps < STILL_MPS and clear else 0
         if self._still_steps >= max(wait, 1) and clear:
             self._moving_off = True

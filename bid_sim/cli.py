@@ -137,14 +137,14 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
              "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light,
              "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
-             "light_short": args.light_short}
+             "light_short": args.light_short, "move_off_green": args.move_off_green}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
     # A hold, a wait or a gap of 0 means something (never hold, no wait, stop at the line), so it is kept where
     # the other options' 0 is dropped.
     return {k: v for k, v in given.items()
-            if v or (k in ("pedestrian_hold", "move_off_braked", "light_short") and v is not None)} or None
+            if v or (k in ("pedestrian_hold", "move_off_braked", "light_short", "move_off_green") and v is not None)} or None
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -288,6 +288,9 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="--agent bid with --light-brake: stop this far short of a red light's stop line "
                         "(default 1, the expert's; at 1 m the red lamp is above the cameras' view) "
                         "(bid_model/agent.py)")
+    g.add_argument("--move-off-green", type=float, default=None, metavar="S",
+                   help="--agent bid with --move-off and --light-brake: after a stop at a red light, move "
+                        "off once clear for S seconds, not --move-off's (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

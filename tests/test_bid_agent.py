@@ -531,6 +531,42 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, move_off_braked=2.0)
     with pytest.raises(BidError, match="from 0 to move_off"):
         BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_braked=2.0)
+    # move_off_green: after a stop at a red light it moves off once clear for 0.2 s, not move_off's
+    # 0.8 s, whether it came to stand reading one within 8 m or stood before one that turned green;
+    # a stop for nothing the head read as a light still waits move_off's.
+    green = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_green=0.2, light_brake=1.0)
+    slow = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, light_brake=1.0)
+
+    def set_light(agents, cpc_accel, light):
+        with torch.no_grad():
+            for agent in agents:
+                agent.model.areas["CPC"].head[-1].weight.zero_()
+                agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, cpc_accel]))
+                agent.model.hazard_head[-1].weight.zero_()
+                agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.0, light]))
+
+    for agent in (green, slow):
+        agent.reset(None)
+        set_light([agent], 100.0, 0.8)  # the head says go; a red light's line 5 m ahead at 3 m/s
+        assert agent.act(Observation(frame, frame, 4, 3.0, None)).accel == pytest.approx(-light_brake(0.8, 3.0))
+        set_light([agent], -100.0, 0.0)  # stood; the light reads green, the head stands
+    assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
+    assert [slow.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
+    green.reset(None)  # standing before a red light 2.5 m on, which turns green
+    set_light([green], -100.0, 0.9)
+    assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0] * 3, abs=1e-5)
+    set_light([green], -100.0, 0.0)
+    assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
+    green.reset(None)  # standing where the head itself stopped, no light seen: move_off's wait
+    assert [green.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
+    for kwargs, says in (({"move_off": 0.8}, "add move_off and light_brake"), ({"light_brake": 1.0}, "add move_off"),
+                         ({"move_off": 0.8, "light_brake": 1.0, "move_off_green": 2.0}, "from 0 to move_off")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(tmp_path / "hz" / "last.pt", **{"move_off_green": 0.2, **kwargs})
+    from bid_sim.cli import _drive_options, build_parser
+
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "0"])
+    assert _drive_options(args, None) == {"move_off_green": 0.0}  # no wait is kept
     for to in (0.0, -1.0, float("nan")):
         with pytest.raises(BidError, match="move_off_to is a speed in m/s"):
             BIDAgent(tmp_path / "hz" / "last.pt", move_off=8.0, move_off_to=to)
