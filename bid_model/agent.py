@@ -265,7 +265,7 @@ class BIDAgent:
     The control head may still creep closer: below BIND_SHARE the light brake asks nothing.
     move_off_green: seconds; with move_off and light_brake, the wait before moving off after a
     stop at a red light: the head has read one within CLEAR_M since the ego last drove at
-    START_MPS or faster without (the light brake stops binding near 2 m/s, and the control head
+    START_MPS or faster without one (the light brake stops binding near 2 m/s, and the control head
     rolls the ego the last metres). Standing 2.4 m short of a line at green (`light_short` 2.5),
     frame t alone read the light 0.2 but the control head did not go, so every light cost
     move_off's whole wait once it turned green (docs/experiments.md).
@@ -410,7 +410,7 @@ class BIDAgent:
         self._moving_off = False
         self._since_override = 10**9  # steps since the brakes last overrode an accel >= 0, for move_off_braked
         self._braked_stop = False  # the ego stands where the brakes stopped it
-        self._light_approach = False  # a red light read within CLEAR_M since the ego last drove on without
+        self._light_approach = False  # a red light read within CLEAR_M since the ego last drove on without one
         # The last step's control-head accel and the nearness the brakes read (for inspection:
         # bid_model.shadow); () when no brake or move-off reads the hazard outputs.
         self.head_accel = 0.0
