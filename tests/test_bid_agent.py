@@ -509,13 +509,13 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     prompt = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_braked=0.2, hazard_brake=1.0)
     patient = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, hazard_brake=1.0)
 
-    def set_bias(agents, cpc_accel, pedestrian):
+    def set_bias(agents, cpc_accel, pedestrian, light=0.0):
         with torch.no_grad():
             for agent in agents:
                 agent.model.areas["CPC"].head[-1].weight.zero_()
                 agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, cpc_accel]))
                 agent.model.hazard_head[-1].weight.zero_()
-                agent.model.hazard_head[-1].bias.copy_(torch.tensor([pedestrian, 0.0, 0.0]))
+                agent.model.hazard_head[-1].bias.copy_(torch.tensor([pedestrian, 0.0, light]))
 
     for agent in (prompt, patient):
         agent.reset(None)
@@ -537,25 +537,17 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     green = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_green=0.2, light_brake=1.0)
     slow = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, light_brake=1.0)
 
-    def set_light(agents, cpc_accel, light):
-        with torch.no_grad():
-            for agent in agents:
-                agent.model.areas["CPC"].head[-1].weight.zero_()
-                agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, cpc_accel]))
-                agent.model.hazard_head[-1].weight.zero_()
-                agent.model.hazard_head[-1].bias.copy_(torch.tensor([0.0, 0.0, light]))
-
     for agent in (green, slow):
         agent.reset(None)
-        set_light([agent], 100.0, 0.8)  # the head says go; a red light's line 5 m ahead at 3 m/s
+        set_bias([agent], 100.0, 0.0, 0.8)  # the head says go; a red light's line 5 m ahead at 3 m/s
         assert agent.act(Observation(frame, frame, 4, 3.0, None)).accel == pytest.approx(-light_brake(0.8, 3.0))
-        set_light([agent], -100.0, 0.0)  # stood; the light reads green, the head stands
+        set_bias([agent], -100.0, 0.0, 0.0)  # stood; the light reads green, the head stands
     assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
     assert [slow.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
     green.reset(None)  # standing before a red light 2.5 m on, which turns green
-    set_light([green], -100.0, 0.9)
+    set_bias([green], -100.0, 0.0, 0.9)
     assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0] * 3, abs=1e-5)
-    set_light([green], -100.0, 0.0)
+    set_bias([green], -100.0, 0.0, 0.0)
     assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
     green.reset(None)  # standing where the head itself stopped, no light seen: move_off's wait
     assert [green.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
