@@ -269,6 +269,10 @@ class BIDAgent:
     rolls the ego the last metres). Standing 2.4 m short of a line at green (`light_short` 2.5),
     frame t alone read the light 0.2 but the control head did not go, so every light cost
     move_off's whole wait once it turned green (docs/experiments.md).
+    green_far: metres; with move_off_green, its shorter wait counts only while the red light reads
+    farther off than this (CLEAR_M, as move_off's own wait, when None). Standing 1.3 m short of a
+    red light the head read it 0.46-0.89 (CLEAR_M is 0.68), and a second of reads below 0.68 moved
+    the ego off into the red; before a green lamp, from 2.3-2.7 m, it read -0.5..0.4 (docs/experiments.md).
     """
 
     uses_camera = True
@@ -282,7 +286,8 @@ class BIDAgent:
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
                  turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
                  vehicle_second_head: bool = False, light_still: bool = False,
-                 light_short: float | None = None, move_off_green: float | None = None):
+                 light_short: float | None = None, move_off_green: float | None = None,
+                 green_far: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -372,6 +377,11 @@ class BIDAgent:
         if move_off_green is not None and not 0 <= move_off_green <= move_off:
             raise BidError(f"move_off_green is a wait in seconds, from 0 to move_off ({move_off:g}); got {move_off_green}")
         self.green_steps = round(move_off_green / DT_S) if move_off_green is not None else None
+        if green_far is not None and move_off_green is None:
+            raise BidError("green_far is where move_off_green's wait reads a red light; add move_off_green, or drop it")
+        if green_far is not None and not CLEAR_M <= green_far <= HAZARD_AHEAD_M:
+            raise BidError(f"green_far is a distance from {CLEAR_M:g} to {HAZARD_AHEAD_M:g} m; got {green_far}")
+        self.green_read = 1.0 - (CLEAR_M if green_far is None else green_far) / HAZARD_AHEAD_M
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -411,6 +421,7 @@ class BIDAgent:
         self._since_override = 10**9  # steps since the brakes last overrode an accel >= 0, for move_off_braked
         self._braked_stop = False  # the ego stands where the brakes stopped it
         self._light_approach = False  # a red light read within CLEAR_M since the ego last drove on without one
+        self._green_steps = 0  # consecutive steps standing clear with the red light read beyond green_far
         # The last step's control-head accel and the nearness the brakes read (for inspection:
         # bid_model.shadow); () when no brake or move-off reads the hazard outputs.
         self.head_accel = 0.0
@@ -424,6 +435,7 @@ class BIDAgent:
         self._since_override = 10**9
         self._braked_stop = False
         self._light_approach = False
+        self._green_steps = 0
         self._stand_steps = 0
         self._start_left_m = 0.0
         self.head_accel, self.near = 0.0, ()
@@ -515,10 +527,13 @@ class BIDAgent:
         elif self.braked_steps is not None and self._since_override <= self._braked_stop_steps:
             self._braked_stop = True  # came to stand (or stands on) where the brakes held it
         wait = self.braked_steps if self._braked_stop else self.move_off_steps
-        if self.green_steps is not None and self._light_approach:  # stands at a red light, or one misread
-            wait = min(wait, self.green_steps)
         self._still_steps = self._still_steps + 1 if speed_mps < STILL_MPS and clear else 0
+        green = clear and near[2] < self.green_read
+        self._green_steps = self._green_steps + 1 if speed_mps < STILL_MPS and green else 0
         if self._still_steps >= max(wait, 1) and clear:
+            self._moving_off = True
+        if (self.green_steps is not None and self._light_approach  # stands at a red light, or one misread
+                and self._green_steps >= max(self.green_steps, 1)):
             self._moving_off = True
         if self._moving_off and (not clear or speed_mps >= self.move_off_to):
             self._moving_off = False

@@ -137,7 +137,8 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "move_off_braked": args.move_off_braked, "turn_speed": args.turn_speed,
              "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light,
              "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
-             "light_short": args.light_short, "move_off_green": args.move_off_green}
+             "light_short": args.light_short, "move_off_green": args.move_off_green,
+             "green_far": args.green_far}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -291,6 +292,9 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--move-off-green", type=float, default=None, metavar="S",
                    help="--agent bid with --move-off and --light-brake: after a stop at a red light, move "
                         "off once clear for S seconds, not --move-off's (bid_model/agent.py)")
+    g.add_argument("--green-far", type=float, metavar="M",
+                   help="--agent bid with --move-off-green: its wait counts only while the red light reads "
+                        "farther off than M metres (default 8, as clear) (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -551,14 +551,34 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
     assert [green.act(still).accel for _ in range(3)] == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
     green.reset(None)  # standing where the head itself stopped, no light seen: move_off's wait
     assert [green.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
+    # green_far 14 m: a red light read 0.6 (10 m, clear) holds the shorter wait; read 0.0 it counts
+    far = BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, move_off_green=0.2, light_brake=1.0, green_far=14.0)
+    for agent in (green, far):
+        agent.reset(None)
+        set_bias([agent], -100.0, 0.0, 0.9)  # standing before a red light 2.5 m on, read 10 m off from here
+        agent.act(still)
+        set_bias([agent], -100.0, 0.0, 0.6)
+    assert [green.act(still).accel for _ in range(2)] == pytest.approx([-1.0, MOVE_OFF_ACCEL], abs=1e-5)
+    assert [far.act(still).accel for _ in range(8)] == pytest.approx([-1.0] * 7 + [MOVE_OFF_ACCEL], abs=1e-5)
+    far.reset(None)
+    set_bias([far], -100.0, 0.0, 0.9)
+    far.act(still)
+    set_bias([far], -100.0, 0.0, 0.0)
+    assert [far.act(still).accel for _ in range(3)] == pytest.approx([-1.0, MOVE_OFF_ACCEL, MOVE_OFF_ACCEL], abs=1e-5)
     for kwargs, says in (({"move_off": 0.8}, "add move_off and light_brake"), ({"light_brake": 1.0}, "add move_off"),
                          ({"move_off": 0.8, "light_brake": 1.0, "move_off_green": 2.0}, "from 0 to move_off")):
         with pytest.raises(BidError, match=says):
             BIDAgent(tmp_path / "hz" / "last.pt", **{"move_off_green": 0.2, **kwargs})
+    for kwargs, says in (({"move_off": 0.8, "light_brake": 1.0}, "add move_off_green"),
+                         ({"move_off": 0.8, "light_brake": 1.0, "move_off_green": 0.2, "green_far": 5.0}, "from 8 to 25")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(tmp_path / "hz" / "last.pt", **{"green_far": 14.0, **kwargs})
     from bid_sim.cli import _drive_options, build_parser
 
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "0"])
     assert _drive_options(args, None) == {"move_off_green": 0.0}  # no wait is kept
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "1", "--green-far", "14"])
+    assert _drive_options(args, None) == {"move_off_green": 1.0, "green_far": 14.0}
     for to in (0.0, -1.0, float("nan")):
         with pytest.raises(BidError, match="move_off_to is a speed in m/s"):
             BIDAgent(tmp_path / "hz" / "last.pt", move_off=8.0, move_off_to=to)
