@@ -390,11 +390,12 @@ def test_the_shipped_checkpoint_takes_the_flags_make_drives_it_with():
             valued = i + 1 < len(words) and not words[i + 1].startswith("--")
             options[word.removeprefix("--").replace("-", "_")] = float(words[i + 1]) if valued else True
     assert set(options) == {"vehicle_brake", "light_brake", "move_off", "hazard_brake", "pedestrian_hold",
-                            "max_speed", "light_still"}
+                            "max_speed", "light_still", "light_short", "move_off_green"}
     shipped = root / "checkpoints" / "bid_small.pt"
     agent = BIDAgent(shipped, **options)
     assert agent.light_brake == agent.hazard_brake == 1.0 and agent.vehicle_brake == 2.0 and agent.move_off_steps == 80
     assert agent.pedestrian_hold_m == 6.0 and agent.max_speed == 9.0 and agent.light_still is True
+    assert agent.light_short_m == 2.5 and agent.green_steps == 10
     assert agent.config.model.hazard_sc
     plain = BIDAgent(shipped)
     frame, prev, cmd, speed = one_input(plain.hw, seed=0, command=3, speed_mps=3.0)
