@@ -421,7 +421,7 @@ class BIDAgent:
         self._since_override = 10**9  # steps since the brakes last overrode an accel >= 0, for move_off_braked
         self._braked_stop = False  # the ego stands where the brakes stopped it
         self._light_approach = False  # a red light read within CLEAR_M since the ego last drove on without one
-        self._green_steps = 0  # consecutive steps standing clear with the red light read beyond green_far
+        self._green_count = 0  # consecutive steps standing clear with the red light read beyond green_far
         # The last step's control-head accel and the nearness the brakes read (for inspection:
         # bid_model.shadow); () when no brake or move-off reads the hazard outputs.
         self.head_accel = 0.0
@@ -435,7 +435,7 @@ class BIDAgent:
         self._since_override = 10**9
         self._braked_stop = False
         self._light_approach = False
-        self._green_steps = 0
+        self._green_count = 0
         self._stand_steps = 0
         self._start_left_m = 0.0
         self.head_accel, self.near = 0.0, ()
@@ -529,11 +529,11 @@ class BIDAgent:
         wait = self.braked_steps if self._braked_stop else self.move_off_steps
         self._still_steps = self._still_steps + 1 if speed_mps < STILL_MPS and clear else 0
         green = clear and near[2] < self.green_read
-        self._green_steps = self._green_steps + 1 if speed_mps < STILL_MPS and green else 0
+        self._green_count = self._green_count + 1 if speed_mps < STILL_MPS and green else 0
         if self._still_steps >= max(wait, 1) and clear:
             self._moving_off = True
         if (self.green_steps is not None and self._light_approach  # stands at a red light, or one misread
-                and self._green_steps >= max(self.green_steps, 1)):
+                and self._green_count >= max(self.green_steps, 1)):
             self._moving_off = True
         if self._moving_off and (not clear or speed_mps >= self.move_off_to):
             self._moving_off = False
