@@ -42,6 +42,7 @@ BIND_SHARE = 0.1
 STILL_MPS = 0.1  # slower than this is standing (bid_sim.infractions.BLOCKED_SPEED_MPS)
 MOVE_OFF_ACCEL = 0.5  # the accel `move_off` gives a standing ego (the expert's is 0.67)
 CLEAR_M = 8.0  # move_off waits while a pedestrian, vehicle or red light is seen nearer than this
+CLEAR_READ = 1.0 - CLEAR_M / HAZARD_AHEAD_M  # the hazard head's nearness at CLEAR_M (0.68)
 # `path_memory`: a pedestrian or vehicle seen in the path this close is remembered once unseen. The
 # recordings hold no car nearer than the 2.5 m the expert stops at, so the detectors lose one
 # the ego creeps closer to (route 21, docs/experiments.md); farther off, losing one is mostly a
@@ -140,7 +141,7 @@ def clear_to_move_off(near: tuple[float, ...]) -> bool:
     free to move off: nothing seen within CLEAR_M. A light farther off is the light brake's (it
     stops the ego short of it); on green the light output wanders up to 0.3 (17 m), which, had
     any seen light counted, kept restarting the wait (route 10, seed 2: blocked)."""
-    return max(near[:3]) < 1.0 - CLEAR_M / HAZARD_AHEAD_M
+    return max(near[:3]) < CLEAR_READ
 
 
 class PathMemory:
@@ -381,7 +382,7 @@ class BIDAgent:
             raise BidError("green_far is where move_off_green's wait reads a red light; add move_off_green, or drop it")
         if green_far is not None and not CLEAR_M <= green_far <= HAZARD_AHEAD_M:
             raise BidError(f"green_far is a distance from {CLEAR_M:g} to {HAZARD_AHEAD_M:g} m; got {green_far}")
-        self.green_read = 1.0 - (CLEAR_M if green_far is None else green_far) / HAZARD_AHEAD_M
+        self.green_read = CLEAR_READ if green_far is None else 1.0 - green_far / HAZARD_AHEAD_M
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -496,7 +497,7 @@ class BIDAgent:
                 near = clear_near = self.memory.update(near, v)
             self.near = near
             if self.green_steps is not None:
-                red_near = near[2] >= 1.0 - CLEAR_M / HAZARD_AHEAD_M
+                red_near = near[2] >= CLEAR_READ
                 if red_near or v >= START_MPS:
                     self._light_approach = red_near
             if self.move_off_steps:
