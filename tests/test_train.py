@@ -247,6 +247,17 @@ def test_torchrun_ddp_equals_one_process_with_the_same_global_batch(tmp_path):
         torch.testing.assert_close(ddp["model"][key], w, rtol=1e-4, atol=1e-4, msg=key)
 
 
+def test_a_torchrun_process_exits_with_its_code_and_its_output_written():
+    """Under torchrun (WORLD_SIZE > 1) the process ends without finalizing the interpreter
+    (train.exit_process), its buffered output and log lines written first."""
+    script = ("import logging, os, sys; os.environ['WORLD_SIZE'] = '2'; from bid_model.train import exit_process; "
+              "logging.basicConfig(level=logging.INFO, format='%(message)s'); logging.info('logged'); "
+              "print('printed', end=''); exit_process(3)")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # stdout buffered, as in a pipe
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env)
+    assert (proc.returncode, proc.stdout, proc.stderr.strip()) == (3, "printed", "logged")
+
+
 def test_init_starts_from_a_checkpoints_weights(tmp_path, capsys):
     first = quick_run(1)
     train(tmp_path / "a", first, synthetic=True, progress=False)
