@@ -93,6 +93,7 @@ def _record(args: argparse.Namespace) -> int:
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
                      progress=not args.json, perturb=args.perturb, perturb_turns=args.perturb_turns, ray_address=args.ray,
                      dagger=args.dagger, bends=args.bends, late_brake=args.late_brake, stall_s=args.stall_takeover,
+                     stop_line_gap_m=args.stop_line_gap,
                      dagger_options=_drive_options(args, None if args.dagger else
                                                    "is how the --dagger student drives; give --dagger CHECKPOINT or drop it"))
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
@@ -138,7 +139,7 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light,
              "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
              "light_short": args.light_short, "move_off_green": args.move_off_green,
-             "green_far": args.green_far}
+             "green_far": args.green_far, "light_hold": args.light_hold}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -295,6 +296,9 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--green-far", type=float, metavar="M",
                    help="--agent bid with --move-off-green: its wait counts only while the red light reads "
                         "farther off than M metres (default 8, as clear) (bid_model/agent.py)")
+    g.add_argument("--light-hold", action="store_true", default=None,
+                   help="--agent bid with --light-brake: below 2 m/s a red light read within 8 m holds the ego "
+                        "standing until --move-off goes (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -356,6 +360,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--perturb-turns", type=float, default=0.0, metavar="SHARE",
                      help="share of the junction turns begun late: the turn's first steering damped for 0.4-1.2 s, "
                           "at any speed, so the car runs wide; labels stay the expert's, which steer it back")
+    rec.add_argument("--stop-line-gap", type=float, default=None, metavar="M",
+                     help="the expert stops this far before a red or amber light's stop line (default 1; at 1 m "
+                          "the lamp is above the cameras' view, from about 2 m it is whole)")
     rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
                      help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
     _add_drive_arguments(rec)

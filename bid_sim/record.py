@@ -32,6 +32,7 @@ from bid_sim.weather import check_weather
 log = logging.getLogger(__name__)
 
 DENSITIES = ("none", "normal", "crowded")
+MAX_STOP_LINE_GAP_M = 5.0  # --stop-line-gap: farther back the expert would stand before the line's queue
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,7 @@ class EpisodeSpec:
     late_brake: float = 0.0  # the teacher brakes for a car ahead of the student only this late (Dagger's late_brake)
     stall_s: float | None = None  # the teacher starts a student standing this long (Dagger's stall_steps; None: 1.5 s)
     perturb_turns: float = 0.0  # share of the junction turns begun late (Perturbed's turns)
+    stop_line_gap_m: float | None = None  # the expert stops this far before a red light's line (None: its 1 m)
 
     @property
     def name(self) -> str:
@@ -60,7 +62,8 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
                   seed: int, agent: str = "expert", max_steps: int | None = None,
                   perturb: float = 0.0, dagger: str | None = None, bends: bool = False,
                   dagger_options: dict | None = None, late_brake: float = 0.0,
-                  stall_s: float | None = None, perturb_turns: float = 0.0) -> list[EpisodeSpec]:
+                  stall_s: float | None = None, perturb_turns: float = 0.0,
+                  stop_line_gap_m: float | None = None) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -79,7 +82,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
                         seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options, late_brake, stall_s,
-                        perturb_turns)
+                        perturb_turns, stop_line_gap_m)
             for i in range(episodes)]
 
 
@@ -91,7 +94,8 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
             "dagger": Path(spec.dagger).name if spec.dagger else "", "dagger_drive": drive_words(spec.dagger_options),
             "late_brake": f"{spec.late_brake:g}" if spec.late_brake else "",
             "stall_takeover_s": "" if spec.stall_s is None else f"{spec.stall_s:g}",
-            "perturb_turns": f"{spec.perturb_turns:g}" if spec.perturb_turns else ""}
+            "perturb_turns": f"{spec.perturb_turns:g}" if spec.perturb_turns else "",
+            "stop_line_gap_m": "" if spec.stop_line_gap_m is None else f"{spec.stop_line_gap_m:g}"}
 
 
 def drive_words(options: dict | None) -> str:
@@ -106,11 +110,11 @@ def drive_words(options: dict | None) -> str:
 def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
     recording) only if it is the episode `spec` plans: another --seed, --perturb (or --perturb-turns), --dagger (or
-    how its student drives, --late-brake or --stall-takeover), --agent or town would otherwise mix two recordings under one
+    how its student drives, --late-brake or --stall-takeover), --stop-line-gap, --agent or town would otherwise mix two recordings under one
     folder unnoticed. `town`, `tag`: the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
     theirs = {**theirs, **{k: theirs.get(k, "") for k in ("dagger", "dagger_drive", "late_brake", "stall_takeover_s",
-                                                      "perturb_turns")}}
+                                                      "perturb_turns", "stop_line_gap_m")}}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
     if theirs.get("town") != town.name:
@@ -148,7 +152,13 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
              "weather": spec.weather, "density": spec.density, "seed": str(spec.seed), "agent": spec.agent,
              "frame": "900x300 RGB, cameras left|centre|right at yaw +60/0/-60 deg, 60 deg FOV",
              "step_s": "0.1", "perturb": str(spec.perturb), "software": f"bid-sim {__version__}"}
-    agent = make_agent(spec.agent)
+    if spec.stop_line_gap_m is None:
+        agent = make_agent(spec.agent)
+    else:  # record() lets it through for the expert only
+        from bid_sim.expert import Expert, ExpertConfig
+
+        facts["stop_line_gap_m"] = plan["stop_line_gap_m"]
+        agent = Expert(ExpertConfig(stop_line_gap_m=spec.stop_line_gap_m))
     if spec.perturb or spec.perturb_turns:
         if spec.perturb_turns:
             facts["perturb_turns"] = plan["perturb_turns"]
@@ -188,7 +198,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
            workers: int, out: str | os.PathLike, agent: str = "expert", max_steps: int | None = None,
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
            dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None,
-           late_brake: float = 0.0, stall_s: float | None = None, perturb_turns: float = 0.0) -> dict:
+           late_brake: float = 0.0, stall_s: float | None = None, perturb_turns: float = 0.0,
+           stop_line_gap_m: float | None = None) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
     bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
     dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger);
@@ -199,6 +210,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
     seconds the student may stand while the teacher would drive before the teacher starts it
     (None: bid_sim.perturb.STALL_STEPS), so that a student's own move-off drives it off.
     perturb_turns: the share of junction turns the expert begins late (bid_sim.perturb.Perturbed).
+    stop_line_gap_m: how far before a red or amber light's stop line the expert stops (None: its
+    own 1 m, bid_sim.expert.ExpertConfig); at 1 m the lamp is above the cameras' view.
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
@@ -240,8 +253,12 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"--late-brake needs the expert as the teacher (it says what it brakes for); got --agent {agent}")
     if stall_s is not None and not 1 <= round(stall_s / DT_S) <= MAX_STALL_STEPS:
         raise BidError(f"--stall-takeover is seconds the student may stand, 0.1 to {MAX_STALL_STEPS * DT_S:g}; got {stall_s}")
+    if stop_line_gap_m is not None and agent != "expert":
+        raise BidError(f"--stop-line-gap is where the expert stops at a red light; got --agent {agent}")
+    if stop_line_gap_m is not None and not 0.0 <= stop_line_gap_m <= MAX_STOP_LINE_GAP_M:
+        raise BidError(f"--stop-line-gap is a distance from 0 to {MAX_STOP_LINE_GAP_M:g} m; got {stop_line_gap_m}")
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends,
-                          dagger_options, late_brake, stall_s, perturb_turns)
+                          dagger_options, late_brake, stall_s, perturb_turns, stop_line_gap_m)
     plan_town = resolve_town(town)
     plan_tag = net_tag(plan_town)
     for s in specs:

@@ -70,6 +70,13 @@ def test_stops_at_the_stop_line_on_red_then_goes_on_green(town02):
     assert snap.ego.speed_mps < 0.05 and control.accel < 0.0
     assert 0.0 < snap.next_light_dist_m < 2.5  # front bumper just before the line
     assert r.status == "completed" and r.metrics["TL"] == 0
+    # stop_line_gap_m 2.5 (bid record --stop-line-gap): it stands 1.5 m farther back.
+    farther = Watched(green_later, config=ExpertConfig(stop_line_gap_m=2.5))
+    r = run_episode(town02, THROUGH_J400, "ClearNoon", "none", 0, farther, on_start=all_red)
+    back, _, _, reason = farther.seen[240]
+    assert reason == "red light" and back.ego.speed_mps < 0.05
+    assert back.next_light_dist_m - snap.next_light_dist_m == pytest.approx(1.5, abs=0.3)
+    assert r.status == "completed" and r.metrics["TL"] == 0
 
 
 def test_follows_a_slower_car_without_collision(town02):

@@ -169,6 +169,28 @@ def test_record_bends_takes_routes_round_a_corner(tmp_path):
         assert any(s <= 250.0 for s, _ in route.road_bends())
 
 
+def test_record_stop_line_gap_is_recorded_and_kept_to(tmp_path, capsys):
+    """bid record --stop-line-gap: the expert stands that far before a red light's line
+    (tests/test_expert.py); the recordings say so, and a folder is finished only with the same
+    gap; another agent, or a gap out of range, is refused."""
+    from bid_sim.recording import read_facts
+
+    def rec(out, *flags):
+        return main(["record", "--town", "02", "--episodes", "1", "--densities", "none", "--weathers", "ClearNoon",
+                     "--max-steps", "3", "--workers", "1", *flags, "--out", str(out), "--json"])
+
+    assert rec(tmp_path / "gap", "--stop-line-gap", "2.5") == 0
+    capsys.readouterr()
+    assert read_facts(files(tmp_path / "gap")[0])["stop_line_gap_m"] == "2.5"
+    assert rec(tmp_path / "gap") == 2
+    assert "stop_line_gap_m '2.5' here, 'none' planned" in capsys.readouterr().err
+    for flags, says in ((("--stop-line-gap", "6"), "--stop-line-gap is a distance from 0 to 5 m; got 6.0"),
+                        (("--stop-line-gap", "2.5", "--agent", "lanefollow"), "--stop-line-gap is where the expert stops")):
+        assert rec(tmp_path / "x", *flags) == 2, flags
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+
+
 def test_a_rerun_into_a_folder_of_another_recording_is_refused(recorded, tmp_path, town_with_crossings):
     """Rerunning finishes an interrupted recording; the same folder with another --seed,
     --perturb or --agent is refused before anything is written, the files left as they were."""
