@@ -274,6 +274,10 @@ class BIDAgent:
     farther off than this (CLEAR_M, as move_off's own wait, when None). Standing 1.3 m short of a
     red light the head read it 0.46-0.89 (CLEAR_M is 0.68), and a second of reads below 0.68 moved
     the ego off into the red; before a green lamp, from 2.3-2.7 m, it read -0.5..0.4 (docs/experiments.md).
+    light_hold: with light_brake, a red light read within CLEAR_M holds an ego slower than START_MPS
+    (full braking) unless moving off. The light brake asks nothing below BIND_SHARE, and the control
+    head crept up from 2.5 m to 1.3 m short, where frame t alone read a red light 0.46-0.89 and a
+    second of reads below CLEAR_READ moved the ego off into it (docs/experiments.md).
     """
 
     uses_camera = True
@@ -288,7 +292,7 @@ class BIDAgent:
                  turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
                  vehicle_second_head: bool = False, light_still: bool = False,
                  light_short: float | None = None, move_off_green: float | None = None,
-                 green_far: float | None = None):
+                 green_far: float | None = None, light_hold: bool = False):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -383,6 +387,9 @@ class BIDAgent:
         if green_far is not None and not CLEAR_M <= green_far <= HAZARD_AHEAD_M:
             raise BidError(f"green_far is a distance from {CLEAR_M:g} to {HAZARD_AHEAD_M:g} m; got {green_far}")
         self.green_read = CLEAR_READ if green_far is None else 1.0 - green_far / HAZARD_AHEAD_M
+        if light_hold and not light_brake:
+            raise BidError("light_hold keeps the light brake's stop; add light_brake, or drop it")
+        self.light_hold = light_hold
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
@@ -506,6 +513,8 @@ class BIDAgent:
                        self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None),
                        self.light_brake * light_brake(near[2], v, self.light_short_m) if self.light_brake > 0 else 0.0,
                        self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
+            if self.light_hold and v < START_MPS and near[2] >= CLEAR_READ and not self._moving_off:
+                need = 1.0
             if need > 0:
                 overrode = accel >= 0
                 accel = min(accel, -need)

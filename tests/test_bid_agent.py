@@ -574,8 +574,23 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
                          ({"move_off": 0.8, "light_brake": 1.0, "move_off_green": 0.2, "green_far": 5.0}, "from 8 to 25")):
         with pytest.raises(BidError, match=says):
             BIDAgent(tmp_path / "hz" / "last.pt", **{"green_far": 14.0, **kwargs})
+    # light_hold: creeping at 0.5 m/s up to a red light read 5 m off, the light brake asks nothing
+    # (below BIND_SHARE) and the head rolls on; held, the ego stops. Read 10 m off, or at 3 m/s, as before.
+    loose = BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0)
+    held = BIDAgent(tmp_path / "hz" / "last.pt", light_brake=1.0, light_hold=True)
+    creeping, driving = Observation(frame, frame, 4, 0.5, None), Observation(frame, frame, 4, 3.0, None)
+    for light, speed, want in ((0.8, creeping, -1.0), (0.6, creeping, 1.0), (0.8, driving, -light_brake(0.8, 3.0))):
+        for agent in (loose, held):
+            agent.reset(None)
+            set_bias([agent], 100.0, 0.0, light)
+        assert held.act(speed).accel == pytest.approx(want, abs=1e-5), (light, speed.speed_mps)
+        assert loose.act(speed).accel == pytest.approx(1.0 if speed is creeping else want, abs=1e-5)
+    with pytest.raises(BidError, match="add light_brake"):
+        BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, light_hold=True)
     from bid_sim.cli import _drive_options, build_parser
 
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--light-brake", "1", "--light-hold"])
+    assert _drive_options(args, None) == {"light_brake": 1.0, "light_hold": True}
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "0"])
     assert _drive_options(args, None) == {"move_off_green": 0.0}  # no wait is kept
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "1", "--green-far", "14"])
