@@ -297,8 +297,8 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="--agent bid with --move-off-green: its wait counts only while the red light reads "
                         "farther off than M metres (default 8, as clear) (bid_model/agent.py)")
     g.add_argument("--light-hold", action="store_true", default=None,
-                   help="--agent bid with --light-brake: below 2 m/s a red light read within 8 m holds the ego "
-                        "standing until --move-off goes (bid_model/agent.py)")
+                   help="--agent bid with --light-brake: below 2 m/s a red light read within 8 m brakes fully, "
+                        "unless --move-off is moving the ego off (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

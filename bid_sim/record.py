@@ -32,7 +32,7 @@ from bid_sim.weather import check_weather
 log = logging.getLogger(__name__)
 
 DENSITIES = ("none", "normal", "crowded")
-MAX_STOP_LINE_GAP_M = 5.0  # --stop-line-gap: farther back the expert would stand before the line's queue
+MAX_STOP_LINE_GAP_M = 5.0  # the largest --stop-line-gap, metres
 
 
 @dataclass(frozen=True)
