@@ -149,6 +149,9 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-accel", action="store_true", default=None,
                    help="with --train-only CPC and --init: the accel labels are the init control head's own, "
                         "so it learns new steering labels (a DAgger round's) and keeps its throttle and brake")
+    p.add_argument("--keep-hazard", action="store_true", default=None,
+                   help="with --train-only hazard and --init: the head's pedestrian and vehicle targets are the init "
+                        "head's own, so it learns new red-light targets (bid record --stop-line-gap) and keeps the rest")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")

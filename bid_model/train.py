@@ -153,6 +153,36 @@ class KeptAccel:
         return torch.stack((target[:, 0], accel), dim=1)
 
 
+class KeptHazard:
+    """`bid train --keep-hazard`: the pedestrian and vehicle targets of the hazard head are the
+    --init checkpoint's head's own outputs on the same features, so that the head fitted alone
+    (--train-only hazard) to new red-light targets, say recordings of the expert standing 2.5 m
+    short of the line (bid record --stop-line-gap), keeps what it says of pedestrians and
+    vehicles: refitted whole on such recordings its pedestrian output moved, its hidden layers
+    being shared by the three outputs (docs/experiments.md)."""
+
+    def __init__(self, model: BID, state: dict[str, torch.Tensor]):
+        prefix = "hazard_head."
+        head = model.hazard_head
+        self.reference = copy.deepcopy(head).eval().requires_grad_(False)
+        self.reference.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+        self._inputs: tuple | None = None
+        head.register_forward_hook(self._keep)
+
+    def _keep(self, module: nn.Module, inputs: tuple, output: torch.Tensor) -> None:
+        self._inputs = inputs
+
+    def target(self, near: torch.Tensor) -> torch.Tensor:
+        """The head's targets `near` (B, K+1) with the pedestrian and vehicle entries the
+        reference head's on the features of the last forward."""
+        if self._inputs is None:
+            raise RuntimeError("KeptHazard.target before a forward of the model")
+        k = len(PATH_KINDS)
+        with torch.no_grad():
+            own = self.reference(*(x.detach() if isinstance(x, torch.Tensor) else x for x in self._inputs))
+        return torch.cat([own[:, :k].to(near.dtype), near[:, k:]], dim=1)
+
+
 def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Tensor:
     """L1 error of the speed forecast in units of SPEED_SCALE_MPS (as the speed input),
     averaged over the batch and the horizons."""
@@ -218,7 +248,8 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
                 turn_weight: float = 1.0, command: torch.Tensor | None = None,
                 moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
                 green_weight: float = 1.0, green_m: torch.Tensor | None = None,
-                vehicle_moving_weight: float = 1.0, boost: torch.Tensor | None = None) -> torch.Tensor:
+                vehicle_moving_weight: float = 1.0, boost: torch.Tensor | None = None,
+                fit: torch.Tensor | None = None) -> torch.Tensor:
     """L1 error of the hazard head's nearness (recordings.hazard_nearness), averaged over the
     batch and both kinds, each entry weighted by hazard_weights. Pedestrians are in the path in
     about 6 % of frames: under plain L1 (the median) the head says "none" wherever it is less
@@ -229,12 +260,13 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
     stopped before a pedestrian is near, so such frames are rare in its recordings.
     `green_weight` weighs the red-light entry of a standing ego at a green line,
     `vehicle_moving_weight` the vehicles in the path of a moving ego; `boost` (B, K), if given,
-    multiplies the weights (second_boost)."""
+    multiplies the weights (second_boost). `fit`, if given, is what the prediction is fitted to
+    in place of `target`, the weights still following `target` (KeptHazard)."""
     weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
                             green_weight, green_m, vehicle_moving_weight)
     if boost is not None:
         weight = weight * boost
-    return (weight * (pred.float() - target).abs()).sum() / weight.sum()
+    return (weight * (pred.float() - (target if fit is None else fit)).abs()).sum() / weight.sum()
 
 
 def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
@@ -580,9 +612,11 @@ def _write_metrics(history: list[dict[str, Any]], path: Path) -> None:
 
 
 def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, tc: TrainConfig,
-                device: torch.device, bar_desc: str | None, kept: KeptAccel | None = None) -> tuple[float, int]:
+                device: torch.device, bar_desc: str | None, kept: KeptAccel | None = None,
+                kept_hazard: KeptHazard | None = None) -> tuple[float, int]:
     """One pass over `loader`; (sum of batch losses × batch sizes, samples) of this process.
-    `kept`: the accel labels are its reference control head's (--keep-accel)."""
+    `kept`: the accel labels are its reference control head's (--keep-accel); `kept_hazard`: the
+    hazard head's pedestrian and vehicle targets are its reference head's (--keep-hazard)."""
     base = net.module if isinstance(net, nn.parallel.DistributedDataParallel) else net
     set_train_mode(base, tc)
     apart = base.config.hazard_sc and tc.lambda_hazard > 0  # the head and SC fitted each alone
@@ -618,7 +652,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             green_m = batch["green_m"].to(device) if "green_m" in batch else None
             weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps,
                        tc.hazard_green_weight, green_m, tc.hazard_vehicle_moving_weight)
-            loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights)
+            fit = kept_hazard.target(near[:, :own]) if kept_hazard is not None else None
+            loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights, fit=fit)
             if second is not None:
                 near_2 = second_targets(batch, near[:, :own])
                 loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near_2, *weights,
@@ -825,6 +860,11 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         raise BidError("--keep-accel holds the control head's accel while CPC alone learns: add --train-only CPC")
     if tc.keep_accel and start_from is None and ckpt is None:
         raise BidError("--keep-accel keeps the accel of the --init checkpoint's control head: add --init CHECKPOINT")
+    if tc.keep_hazard and tc.train_only != ("hazard",):
+        raise BidError("--keep-hazard holds the hazard head's pedestrian and vehicle while it alone learns: "
+                       "add --train-only hazard")
+    if tc.keep_hazard and start_from is None and ckpt is None:
+        raise BidError("--keep-hazard keeps what the --init checkpoint's hazard head says: add --init CHECKPOINT")
     if tc.train_only:  # a wrong name is refused before the data is opened
         with torch.device("meta"):
             freeze_all_but(BID(config.model), tc.train_only)
@@ -875,17 +915,21 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         fresh = warm_start_move_off(model, state, warm_start_crossing(model, state, fresh))
     elif start_from is not None:
         model.load_state_dict(start_from["model"])
-    kept = None
-    if tc.keep_accel:  # the reference is the init checkpoint's control head, resumed or not
+    kept = kept_hazard = None
+    if tc.keep_accel or tc.keep_hazard:  # the reference is the init checkpoint's, resumed or not
         if start_from is not None:
             reference = start_from["model"]
         else:
             init_path = Path(ckpt.get("init", {}).get("path", ""))
             if not init_path.is_file():
-                raise BidError(f"--keep-accel: the run's --init checkpoint {init_path} is gone; "
+                flag = "--keep-accel" if tc.keep_accel else "--keep-hazard"
+                raise BidError(f"{flag}: the run's --init checkpoint {init_path} is gone; "
                                "put it back to resume, or start a new run")
             reference = load_checkpoint(init_path)["model"]
-        kept = KeptAccel(model, reference)
+        if tc.keep_hazard and not any(k.startswith("hazard_head.") for k in reference):
+            raise BidError("--keep-hazard: the --init checkpoint has no hazard head to keep; drop --keep-hazard")
+        kept = KeptAccel(model, reference) if tc.keep_accel else None
+        kept_hazard = KeptHazard(model, reference) if tc.keep_hazard else None
 
     meta = {"git_hash": git_hash(), "version": _version(), "torch": str(torch.__version__)}
     if start_from is not None:
@@ -930,7 +974,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         lr = opt.param_groups[0]["lr"]
         t0 = time.perf_counter()
         desc = f"epoch {epoch + 1}/{tc.epochs}" if progress and dist.main else None
-        loss_sum, samples = _all_sum(train_epoch(net, loader, opt, tc, dev, desc, kept), dist, dev)
+        loss_sum, samples = _all_sum(train_epoch(net, loader, opt, tc, dev, desc, kept, kept_hazard), dist, dev)
         if dist.world > 1:
             _average_buffers(model, dist)
         train_s = time.perf_counter() - t0
@@ -1025,7 +1069,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only,
-             "--keep-accel": args.keep_accel or None}
+             "--keep-accel": args.keep_accel or None, "--keep-hazard": args.keep_hazard or None}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -1180,6 +1224,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         tc = dataclasses.replace(tc, train_only=names)
     if args.keep_accel:
         tc = dataclasses.replace(tc, keep_accel=True)
+    if args.keep_hazard:
+        tc = dataclasses.replace(tc, keep_hazard=True)
     return RunConfig(model, tc)
 
 

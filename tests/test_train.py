@@ -26,6 +26,7 @@ from bid_model.train import (
     METRIC_COLUMNS,
     EpisodeShardSampler,
     KeptAccel,
+    KeptHazard,
     batch_inputs,
     busy_cores,
     hazard_loss,
@@ -1122,6 +1123,43 @@ def test_a_move_off_head_reading_the_speed_fits_as_the_first_head_refitted(recor
     assert bid([*base, "--move-off-speed", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert "add --move-off-head" in err and "\n" not in err
+
+
+def test_keep_hazard_refits_the_red_light_and_holds_the_pedestrian_and_vehicle(recorded, tmp_path, capsys):
+    """--keep-hazard: the hazard head's pedestrian and vehicle targets are the --init head's own on
+    the same features; refitted alone, its red light moves and the other two stay nearer the init's
+    than in a refit without it. Refused without --train-only hazard or an --init."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--hazard", "1"]
+    assert bid([*base, "--out", str(tmp_path / "start")]) == 0
+    init = tmp_path / "start" / "last.pt"
+    refit = [*base, "--init", str(init), "--train-only", "hazard", "--lr", "3e-3"]
+    assert bid([*refit, "--keep-hazard", "--out", str(tmp_path / "keep")]) == 0
+    assert bid([*refit, "--out", str(tmp_path / "free")]) == 0
+    model, _ = load_model(init, preset="tiny")
+    x = torch.randint(0, 255, (4, 3, 32, 96), dtype=torch.uint8)
+    cmd = torch.eye(6)[[0, 1, 2, 3]]
+
+    def near(m):
+        m.eval()
+        with torch.no_grad():
+            return m(x, x, cmd, hazard=True)[1]
+
+    kept = KeptHazard(model, load_checkpoint(init)["model"])
+    before = near(model)
+    recorded_targets = torch.tensor([[0.9, 0.8, 0.7]] * 4)
+    target = kept.target(recorded_targets)  # the init head's own pedestrian and vehicle, the light as given
+    assert torch.allclose(target[:, :2], before[:, :2]) and torch.equal(target[:, 2], recorded_targets[:, 2])
+    after = {run: near(load_model(tmp_path / run / "last.pt", preset="tiny")[0]) for run in ("keep", "free")}
+    drift = {run: float((out[:, :2] - before[:, :2]).abs().mean()) for run, out in after.items()}
+    assert drift["keep"] < 0.5 * drift["free"], drift
+    assert float((after["keep"][:, 2] - before[:, 2]).abs().mean()) > 1e-3  # the red light refitted
+    assert load_checkpoint(tmp_path / "keep" / "last.pt")["config"]["train"]["keep_hazard"] is True
+    for flags, says in ((("--keep-hazard", "--init", str(init)), "add --train-only hazard"),
+                        (("--keep-hazard", "--train-only", "hazard"), "add --init CHECKPOINT")):
+        assert bid([*base, *flags, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
 
 
 def test_second_bumper_fits_the_second_heads_vehicle_to_cars_ahead_of_the_bumper(recorded, tmp_path, capsys):
