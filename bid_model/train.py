@@ -126,6 +126,13 @@ def set_train_mode(model: BID, tc: TrainConfig) -> None:
         parts[name].train()
 
 
+def _frozen_copy(module: nn.Module, state: dict[str, torch.Tensor], prefix: str) -> nn.Module:
+    """A frozen copy of `module` holding the weights `state` (a checkpoint's) keeps under `prefix`."""
+    reference = copy.deepcopy(module).eval().requires_grad_(False)
+    reference.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+    return reference
+
+
 class KeptAccel:
     """`bid train --keep-accel`: the accel label of every training sample is the one the --init
     checkpoint's control head (CPC) gives on the same features, so that CPC fitted alone
@@ -134,10 +141,8 @@ class KeptAccel:
     creep into queues (docs/experiments.md); the steering of the same rounds is what is wanted."""
 
     def __init__(self, model: BID, state: dict[str, torch.Tensor]):
-        prefix = "areas.CPC."
         cpc = model.areas["CPC"]
-        self.reference = copy.deepcopy(cpc).eval().requires_grad_(False)
-        self.reference.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+        self.reference = _frozen_copy(cpc, state, "areas.CPC.")
         self._tokens: torch.Tensor | None = None
         cpc.register_forward_hook(self._keep)
 
@@ -162,10 +167,8 @@ class KeptHazard:
     being shared by the three outputs (docs/experiments.md)."""
 
     def __init__(self, model: BID, state: dict[str, torch.Tensor]):
-        prefix = "hazard_head."
         head = model.hazard_head
-        self.reference = copy.deepcopy(head).eval().requires_grad_(False)
-        self.reference.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+        self.reference = _frozen_copy(head, state, "hazard_head.")
         self._inputs: tuple | None = None
         head.register_forward_hook(self._keep)
 
