@@ -94,6 +94,7 @@ def _record(args: argparse.Namespace) -> int:
                      progress=not args.json, perturb=args.perturb, perturb_turns=args.perturb_turns, ray_address=args.ray,
                      dagger=args.dagger, bends=args.bends, late_brake=args.late_brake, stall_s=args.stall_takeover,
                      stop_line_gap_m=args.stop_line_gap,
+                     late_kinds=tuple(k.strip() for k in args.late_brake_for.split(",") if k.strip()),
                      dagger_options=_drive_options(args, None if args.dagger else
                                                    "is how the --dagger student drives; give --dagger CHECKPOINT or drop it"))
     print(json.dumps(summary, indent=1) if args.json else describe(summary))
@@ -370,6 +371,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --dagger: the teacher brakes for a car ahead of the student only once stopping "
                           "1 m short of it takes this share of full braking (0.5; default 0: at once), so "
                           "that the recordings hold the student near cars at speed")
+    rec.add_argument("--late-brake-for", default="vehicle", metavar="KINDS",
+                     help="with --late-brake: what the teacher brakes late for, vehicle, pedestrian or "
+                          "vehicle,pedestrian (default vehicle), so that the recordings hold the student near "
+                          "pedestrians in its path at speed too")
     rec.add_argument("--stall-takeover", type=float, default=None, metavar="S",
                      help="with --dagger: the teacher starts a student that stands while it would drive only "
                           "after S seconds (default 1.5); beyond the student's --move-off wait (say 10 with "

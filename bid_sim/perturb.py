@@ -129,6 +129,7 @@ GIVE_UP_STEPS = 50  # 5 s standing still off the route: a dead end (say, past a 
 GIVE_UP_LATERAL_M = 0.75
 GIVE_UP_HEADING_RAD = 0.17  # 10 degrees
 LATE_SHORT_M = 1.0  # late braking: the stop it judges is this far short of the car ahead
+LATE_KINDS = ("vehicle", "pedestrian")  # what late braking may hold back for (the expert's reason's first word)
 
 
 class Dagger:
@@ -144,12 +145,14 @@ class Dagger:
     accel is the lower of the two while the teacher brakes), so red lights and cars ahead do
     not end an episode in a crash. `student_share` is the share of steps the student drove.
 
-    With that braking the student never comes near a car at speed, and the recordings hold few
-    such frames to learn "a car close ahead" from (docs/experiments.md). `late_brake` (a share of
-    full braking, 0 for off) holds the teacher's braking for a vehicle in the path back until
-    stopping LATE_SHORT_M short of it would take at least that share (v² / 2(gap − LATE_SHORT_M)):
-    until then the student's own brakes decide. The teacher must say what it brakes for
-    (bid_sim.expert.Expert's `reason` and `gap_m`). `late_steps` counts the steps held back.
+    With that braking the student never comes near a car or a pedestrian at speed, and the
+    recordings hold few such frames to learn "a car close ahead" (or a pedestrian) from
+    (docs/experiments.md). `late_brake` (a share of full braking, 0 for off) holds the teacher's
+    braking for a vehicle in the path (with `late_kinds`, for those kinds of LATE_KINDS) back
+    until stopping LATE_SHORT_M short of it would take at least that share
+    (v² / 2(gap − LATE_SHORT_M)): until then the student's own brakes decide. The teacher must
+    say what it brakes for (bid_sim.expert.Expert's `reason` and `gap_m`). `late_steps` counts
+    the steps held back.
 
     A forward-only car can strand itself (past a missed turn, nose against a building): the
     expert then stands with the wheel at full lock, and nothing of that is worth learning.
@@ -163,10 +166,14 @@ class Dagger:
     move-off's wait the student moves off on its own and the recordings hold those starts.
     """
 
-    def __init__(self, student: Agent, teacher: Agent, late_brake: float = 0.0, stall_steps: int = STALL_STEPS):
+    def __init__(self, student: Agent, teacher: Agent, late_brake: float = 0.0, stall_steps: int = STALL_STEPS,
+                 late_kinds: tuple[str, ...] = ("vehicle",)):
         self.student, self.teacher = student, teacher
         if not 0.0 <= late_brake <= 1.0:
             raise BidError(f"late_brake is a share of full braking, from 0 (off) to 1; got {late_brake}")
+        if not late_kinds or set(late_kinds) - set(LATE_KINDS):
+            raise BidError(f"late_kinds are what late braking holds back for, some of {', '.join(LATE_KINDS)}; "
+                           f"got {', '.join(late_kinds) or 'none'}")
         if late_brake and not (hasattr(teacher, "reason") and hasattr(teacher, "gap_m")):
             raise BidError("late_brake needs a teacher that says what it brakes for (the expert); "
                            "record with --agent expert, or drop it")
@@ -174,6 +181,7 @@ class Dagger:
             raise BidError(f"stall_steps is how long the student may stand while the teacher would drive, "
                            f"1 to {MAX_STALL_STEPS} steps of 0.1 s; got {stall_steps}")
         self.late_brake = late_brake
+        self.late_kinds = tuple(late_kinds)
         self.stall_steps = stall_steps
         self.late_steps = 0
         self.label: Control | None = None
@@ -216,7 +224,7 @@ class Dagger:
             return teacher
         self._student_steps += 1
         brakes = teacher.accel < 0.0
-        if brakes and self.late_brake and self.teacher.reason.startswith("vehicle "):
+        if brakes and self.late_brake and self.teacher.reason.split(" ", 1)[0] in self.late_kinds:
             room = max(self.teacher.gap_m - LATE_SHORT_M, 0.05)
             if obs.speed_mps ** 2 / (2.0 * room) < self.late_brake * EgoParams.max_brake_mps2:
                 brakes = False  # not yet: the student's own brakes decide

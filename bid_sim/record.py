@@ -23,7 +23,7 @@ from bid_sim.agents import make_agent
 from bid_sim.ego import DT_S
 from bid_sim.errors import BidError, reason
 from bid_sim.parallel import run_parallel
-from bid_sim.perturb import MAX_STALL_STEPS, STALL_STEPS, Dagger, Perturbed
+from bid_sim.perturb import LATE_KINDS, MAX_STALL_STEPS, STALL_STEPS, Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
 from bid_sim.towns import Town, crossing_words, net_tag, resolve_town
@@ -52,6 +52,7 @@ class EpisodeSpec:
     stall_s: float | None = None  # the teacher starts a student standing this long (Dagger's stall_steps; None: 1.5 s)
     perturb_turns: float = 0.0  # share of the junction turns begun late (Perturbed's turns)
     stop_line_gap_m: float | None = None  # the expert stops this far before a red light's line (None: its 1 m)
+    late_kinds: tuple[str, ...] = ("vehicle",)  # what the teacher brakes late for (Dagger's late_kinds)
 
     @property
     def name(self) -> str:
@@ -63,7 +64,8 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
                   perturb: float = 0.0, dagger: str | None = None, bends: bool = False,
                   dagger_options: dict | None = None, late_brake: float = 0.0,
                   stall_s: float | None = None, perturb_turns: float = 0.0,
-                  stop_line_gap_m: float | None = None) -> list[EpisodeSpec]:
+                  stop_line_gap_m: float | None = None,
+                  late_kinds: tuple[str, ...] = ("vehicle",)) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -82,7 +84,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
                         seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options, late_brake, stall_s,
-                        perturb_turns, stop_line_gap_m)
+                        perturb_turns, stop_line_gap_m, late_kinds)
             for i in range(episodes)]
 
 
@@ -95,7 +97,8 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
             "late_brake": f"{spec.late_brake:g}" if spec.late_brake else "",
             "stall_takeover_s": "" if spec.stall_s is None else f"{spec.stall_s:g}",
             "perturb_turns": f"{spec.perturb_turns:g}" if spec.perturb_turns else "",
-            "stop_line_gap_m": "" if spec.stop_line_gap_m is None else f"{spec.stop_line_gap_m:g}"}
+            "stop_line_gap_m": "" if spec.stop_line_gap_m is None else f"{spec.stop_line_gap_m:g}",
+            "late_brake_for": ",".join(spec.late_kinds) if spec.late_brake and spec.late_kinds != ("vehicle",) else ""}
 
 
 def drive_words(options: dict | None) -> str:
@@ -110,11 +113,11 @@ def drive_words(options: dict | None) -> str:
 def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
     recording) only if it is the episode `spec` plans: another --seed, --perturb (or --perturb-turns), --dagger (or
-    how its student drives, --late-brake or --stall-takeover), --stop-line-gap, --agent or town would otherwise mix two recordings under one
+    how its student drives, --late-brake (and --late-brake-for) or --stall-takeover), --stop-line-gap, --agent or town would otherwise mix two recordings under one
     folder unnoticed. `town`, `tag`: the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
     theirs = {**theirs, **{k: theirs.get(k, "") for k in ("dagger", "dagger_drive", "late_brake", "stall_takeover_s",
-                                                      "perturb_turns", "stop_line_gap_m")}}
+                                                      "perturb_turns", "stop_line_gap_m", "late_brake_for")}}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
     if theirs.get("town") != town.name:
@@ -169,9 +172,11 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
         facts["dagger"] = Path(spec.dagger).name  # the student that drove; `agent` labelled
         facts["dagger_drive"] = drive_words(spec.dagger_options)  # and how it drove
         facts["late_brake"] = plan["late_brake"]  # and how late the teacher braked for cars
+        if plan["late_brake_for"]:
+            facts["late_brake_for"] = plan["late_brake_for"]  # and for what, if not for cars alone
         facts["stall_takeover_s"] = plan["stall_takeover_s"]  # and how long the student could stand
         agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent, spec.late_brake,
-                       STALL_STEPS if spec.stall_s is None else round(spec.stall_s / DT_S))
+                       STALL_STEPS if spec.stall_s is None else round(spec.stall_s / DT_S), spec.late_kinds)
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
@@ -199,14 +204,15 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
            dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None,
            late_brake: float = 0.0, stall_s: float | None = None, perturb_turns: float = 0.0,
-           stop_line_gap_m: float | None = None) -> dict:
+           stop_line_gap_m: float | None = None, late_kinds: tuple[str, ...] = ("vehicle",)) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
     bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
     dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger);
     dagger_options: how it drives (bid_model.agent.BIDAgent's options, as `bid evaluate` passes
     them), so that the student visits the states it visits when evaluated so; late_brake: the
     teacher brakes for a car ahead of it only once stopping 1 m short takes that share of full
-    braking (bid_sim.perturb.Dagger), so that the student comes near cars at speed; stall_s:
+    braking (bid_sim.perturb.Dagger), so that the student comes near cars at speed; late_kinds:
+    what it brakes late for (bid_sim.perturb.LATE_KINDS: cars, pedestrians or both); stall_s:
     seconds the student may stand while the teacher would drive before the teacher starts it
     (None: bid_sim.perturb.STALL_STEPS), so that a student's own move-off drives it off.
     perturb_turns: the share of junction turns the expert begins late (bid_sim.perturb.Perturbed).
@@ -251,6 +257,13 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"--late-brake is a share of full braking, from 0 (off) to 1; got {late_brake}")
     if late_brake and agent != "expert":
         raise BidError(f"--late-brake needs the expert as the teacher (it says what it brakes for); got --agent {agent}")
+    late_kinds = tuple(late_kinds)
+    if not late_kinds or set(late_kinds) - set(LATE_KINDS):
+        raise BidError(f"--late-brake-for is what the teacher brakes late for, some of {','.join(LATE_KINDS)}; "
+                       f"got {','.join(late_kinds) or 'nothing'}")
+    if late_kinds != ("vehicle",) and not late_brake:
+        raise BidError("--late-brake-for says what --late-brake holds the teacher's braking back for; "
+                       "give --late-brake SHARE too, or drop it")
     if stall_s is not None and not 1 <= round(stall_s / DT_S) <= MAX_STALL_STEPS:
         raise BidError(f"--stall-takeover is seconds the student may stand, 0.1 to {MAX_STALL_STEPS * DT_S:g}; got {stall_s}")
     if stop_line_gap_m is not None and agent != "expert":
@@ -258,7 +271,7 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
     if stop_line_gap_m is not None and not 0.0 <= stop_line_gap_m <= MAX_STOP_LINE_GAP_M:
         raise BidError(f"--stop-line-gap is a distance from 0 to {MAX_STOP_LINE_GAP_M:g} m; got {stop_line_gap_m}")
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends,
-                          dagger_options, late_brake, stall_s, perturb_turns, stop_line_gap_m)
+                          dagger_options, late_brake, stall_s, perturb_turns, stop_line_gap_m, late_kinds)
     plan_town = resolve_town(town)
     plan_tag = net_tag(plan_town)
     for s in specs:
@@ -298,7 +311,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
             "statuses": {k: sum(1 for d in done if d["status"] == k) for k in sorted({d["status"] for d in done})},
             **({"student_share": round(sum(d["student_share"] for d in done) / len(done), 3)}
                if dagger and done else {}),
-            **({"late_steps": sum(d["late_steps"] for d in done)} if late_brake else {}),
+            **({"late_steps": sum(d["late_steps"] for d in done), "late_brake_for": list(late_kinds)}
+               if late_brake else {}),
             **({"late_turns": sum(d["late_turns"] for d in done)} if perturb_turns else {})}
 
 
@@ -311,7 +325,9 @@ def describe(summary: dict) -> str:
     if "student_share" in summary:
         lines.append(f"  the student drove {100 * summary['student_share']:.0f} % of the steps, the expert the rest")
     if "late_steps" in summary:
-        lines.append(f"  the expert held back its braking for a car ahead {summary['late_steps']} steps (--late-brake)")
+        what = " or ".join({"vehicle": "a car", "pedestrian": "a pedestrian"}[k]
+                           for k in summary.get("late_brake_for", ["vehicle"]))
+        lines.append(f"  the expert held back its braking for {what} ahead {summary['late_steps']} steps (--late-brake)")
     if "late_turns" in summary:
         lines.append(f"  the expert began {summary['late_turns']} turns late (--perturb-turns)")
     lines += [f"  failed {name}: {msg}" for name, msg in summary["failed"]]

@@ -254,8 +254,28 @@ def test_dagger_late_brake_holds_the_teachers_braking_for_a_car_back_until_it_is
     assert on_time.act(_moving(4.0)).accel == -0.6  # without it the teacher brakes at once
     with pytest.raises(BidError, match="from 0 \\(off\\) to 1"):
         Dagger(Expert(), teacher, late_brake=1.5)
+    with pytest.raises(BidError, match="some of vehicle, pedestrian; got cyclist"):
+        Dagger(Expert(), teacher, late_brake=0.5, late_kinds=("cyclist",))
     with pytest.raises(BidError, match="what it brakes for"):
         Dagger(Expert(), Scripted(lambda step, obs: Control(0.0, 0.0)), late_brake=0.5)
+
+
+def test_dagger_late_brake_for_pedestrians_holds_back_only_the_kinds_it_is_given():
+    """late_kinds: with ("pedestrian",) braking for a pedestrian in the path is held back as for
+    a car, and braking for a car is at once; with both, both are held back."""
+    teacher = _Braking()
+    edge = LATE_SHORT_M + 4.0 ** 2 / (2 * 0.5 * EgoParams.max_brake_mps2)
+    for kinds, held in ((("pedestrian",), {"pedestrian p1", "pedestrian p2 beside"}),
+                        (("vehicle", "pedestrian"), {"pedestrian p1", "pedestrian p2 beside", "vehicle v7"})):
+        agent = Dagger(Scripted(lambda step, obs: Control(0.1, 0.4)), teacher, late_brake=0.5, late_kinds=kinds)
+        agent.reset(_info(0))
+        for reason in ("pedestrian p1", "pedestrian p2 beside", "vehicle v7", "red light", "exit blocked (vehicle v7)"):
+            teacher.reason = reason
+            teacher.gap_m = edge + 0.1
+            assert agent.act(_moving(4.0)).accel == (0.4 if reason in held else -0.6), (kinds, reason)
+            teacher.gap_m = edge - 0.1  # within the edge the teacher brakes, whatever it brakes for
+            assert agent.act(_moving(4.0)).accel == -0.6, (kinds, reason)
+        assert agent.late_steps == len(held)
 
 
 class _Quitter:
@@ -321,6 +341,7 @@ def test_bid_record_late_brake_is_recorded_and_kept_to(tmp_path, capsys):
     without --dagger, or with another teacher, refused."""
     from bid_model.recordings import _index, find_recordings
     from bid_sim.cli import main as bid
+    from bid_sim.record import describe
 
     def record(out, *flags):
         return bid(["record", "--town", "02", "--episodes", "1", "--densities", "normal", "--weathers", "ClearNoon",
@@ -341,11 +362,21 @@ def test_bid_record_late_brake_is_recorded_and_kept_to(tmp_path, capsys):
     assert record(tmp_path / "stall", *late, "--stall-takeover", "10") == 0
     capsys.readouterr()
     assert _index(find_recordings(tmp_path / "stall")[0], keep_jpeg=False).facts[0]["stall_takeover_s"] == "10"
+    assert record(tmp_path / "late", *late, "--late-brake-for", "pedestrian") == 2  # braking late for others
+    assert "late_brake_for 'none' here, 'pedestrian' planned" in capsys.readouterr().err
+    assert record(tmp_path / "peds", *late, "--late-brake-for", "vehicle,pedestrian") == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["late_brake_for"] == ["vehicle", "pedestrian"]
+    assert "held back its braking for a car or a pedestrian ahead" in describe(summary)
+    peds = _index(find_recordings(tmp_path / "peds")[0], keep_jpeg=False).facts[0]
+    assert peds["late_brake_for"] == "vehicle,pedestrian" and peds["late_brake"] == "0.5"
     for flags, says in ((("--late-brake", "0.5"), "--late-brake is how late the teacher brakes for the --dagger"),
                         (("--stall-takeover", "10"), "--stall-takeover is how long the --dagger student may stand"),
                         ((*late, "--stall-takeover", "0"), "--stall-takeover is seconds the student may stand, 0.1 to 60"),
                         ((*late[:2], "--late-brake", "2"), "a share of full braking, from 0 (off) to 1; got 2"),
-                        ((*late, "--agent", "lanefollow"), "--late-brake needs the expert as the teacher")):
+                        ((*late, "--agent", "lanefollow"), "--late-brake needs the expert as the teacher"),
+                        ((*late, "--late-brake-for", "cyclist"), "some of vehicle,pedestrian; got cyclist"),
+                        ((*late[:2], "--late-brake-for", "pedestrian"), "give --late-brake SHARE too")):
         assert record(tmp_path / "x", *flags) == 2, flags
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err, err
