@@ -93,7 +93,7 @@ def _record(args: argparse.Namespace) -> int:
                      args.workers, out, agent=args.agent, max_steps=args.max_steps,
                      progress=not args.json, perturb=args.perturb, perturb_turns=args.perturb_turns, ray_address=args.ray,
                      dagger=args.dagger, bends=args.bends, late_brake=args.late_brake, stall_s=args.stall_takeover,
-                     stop_line_gap_m=args.stop_line_gap,
+                     stop_line_gap_m=args.stop_line_gap, walkers=args.crossing_walkers,
                      late_kinds=tuple(k.strip() for k in args.late_brake_for.split(",") if k.strip()),
                      dagger_options=_drive_options(args, None if args.dagger else
                                                    "is how the --dagger student drives; give --dagger CHECKPOINT or drop it"))
@@ -364,6 +364,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--stop-line-gap", type=float, default=None, metavar="M",
                      help="the expert stops this far before a red or amber light's stop line (default 1; at 1 m "
                           "the lamp is above the cameras' view, from about 2 m it is whole)")
+    rec.add_argument("--crossing-walkers", type=float, default=0.0, metavar="SHARE",
+                     help="send a pedestrian across the crossing after this share of each route's turns as the "
+                          "ego comes (0 off): recordings of pedestrians in the path of a turning car")
     rec.add_argument("--dagger", default=None, metavar="CHECKPOINT",
                      help="a BID checkpoint drives, the --agent labels and takes over when it strays (DAgger)")
     _add_drive_arguments(rec)

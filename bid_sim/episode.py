@@ -115,12 +115,14 @@ def run_episode(
     max_steps: int | None = None,
     params: EgoParams = EgoParams(),
     on_start=None,
+    on_step=None,
 ) -> EpisodeResult:
     """Runs one episode to its end and scores it (DESIGN.md section 7).
 
     replan: on leaving the route, plan a new one from where the ego is and correct the
     command (evaluation, as in the paper); otherwise the episode ends at 30 m off route.
-    on_start: called with the World once traffic is in, to set up a scenario.
+    on_start: called with the World once traffic is in, to set up a scenario; on_step: with the
+    World and each step's Snapshot before the agent acts (bid_sim.walkers.CrossingWalkers).
     """
     town = town if isinstance(town, Town) else resolve_town(town)
     check_weather(weather)
@@ -153,6 +155,8 @@ def run_episode(
         prev_frame = None
         noted = 0  # infractions passed on to the recorder's note(), if it has one
         while True:
+            if on_step is not None:
+                on_step(world, snap)
             frame = renderer.render(snap) if renderer is not None else None
             obs = Observation(frame, prev_frame if prev_frame is not None else frame,
                               snap.ego.command, ego.speed_mps, snap)

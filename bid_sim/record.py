@@ -53,6 +53,7 @@ class EpisodeSpec:
     perturb_turns: float = 0.0  # share of the junction turns begun late (Perturbed's turns)
     stop_line_gap_m: float | None = None  # the expert stops this far before a red light's line (None: its 1 m)
     late_kinds: tuple[str, ...] = ("vehicle",)  # what the teacher brakes late for (Dagger's late_kinds)
+    walkers: float = 0.0  # share of the route's turns met by a walker on the crossing (bid_sim.walkers)
 
     @property
     def name(self) -> str:
@@ -65,7 +66,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
                   dagger_options: dict | None = None, late_brake: float = 0.0,
                   stall_s: float | None = None, perturb_turns: float = 0.0,
                   stop_line_gap_m: float | None = None,
-                  late_kinds: tuple[str, ...] = ("vehicle",)) -> list[EpisodeSpec]:
+                  late_kinds: tuple[str, ...] = ("vehicle",), walkers: float = 0.0) -> list[EpisodeSpec]:
     if episodes < 1:
         raise BidError(f"--episodes must be >= 1, got {episodes}")
     if seed < 0:
@@ -84,7 +85,7 @@ def plan_episodes(town: str, episodes: int, weathers: tuple[str, ...], densities
     nw = len(weathers)
     return [EpisodeSpec(i, town, routes[i], weathers[i % nw], densities[(i // nw) % len(densities)],
                         seed * 100_000 + i, agent, max_steps, perturb, dagger, dagger_options, late_brake, stall_s,
-                        perturb_turns, stop_line_gap_m, late_kinds)
+                        perturb_turns, stop_line_gap_m, late_kinds, walkers)
             for i in range(episodes)]
 
 
@@ -98,7 +99,8 @@ def plan_facts(spec: EpisodeSpec) -> dict[str, str]:
             "stall_takeover_s": "" if spec.stall_s is None else f"{spec.stall_s:g}",
             "perturb_turns": f"{spec.perturb_turns:g}" if spec.perturb_turns else "",
             "stop_line_gap_m": "" if spec.stop_line_gap_m is None else f"{spec.stop_line_gap_m:g}",
-            "late_brake_for": ",".join(spec.late_kinds) if spec.late_brake and spec.late_kinds != ("vehicle",) else ""}
+            "late_brake_for": ",".join(spec.late_kinds) if spec.late_brake and spec.late_kinds != ("vehicle",) else "",
+            "crossing_walkers": f"{spec.walkers:g}" if spec.walkers else ""}
 
 
 def drive_words(options: dict | None) -> str:
@@ -113,11 +115,12 @@ def drive_words(options: dict | None) -> str:
 def check_same_plan(spec: EpisodeSpec, path: Path, town: Town, tag: str) -> None:
     """An episode file already in the --out folder is kept (a rerun finishes an interrupted
     recording) only if it is the episode `spec` plans: another --seed, --perturb (or --perturb-turns), --dagger (or
-    how its student drives, --late-brake (and --late-brake-for) or --stall-takeover), --stop-line-gap, --agent or town would otherwise mix two recordings under one
+    how its student drives, --late-brake (and --late-brake-for) or --stall-takeover), --stop-line-gap, --crossing-walkers, --agent or town would otherwise mix two recordings under one
     folder unnoticed. `town`, `tag`: the plan's town and its net_tag, found once per recording."""
     theirs = read_facts(path)
     theirs = {**theirs, **{k: theirs.get(k, "") for k in ("dagger", "dagger_drive", "late_brake", "stall_takeover_s",
-                                                      "perturb_turns", "stop_line_gap_m", "late_brake_for")}}
+                                                      "perturb_turns", "stop_line_gap_m", "late_brake_for",
+                                                      "crossing_walkers")}}
     differ = [f"{k} {theirs.get(k) or 'none'!r} here, {v or 'none'!r} planned"
               for k, v in plan_facts(spec).items() if theirs.get(k) != v]
     if theirs.get("town") != town.name:
@@ -177,11 +180,18 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
         facts["stall_takeover_s"] = plan["stall_takeover_s"]  # and how long the student could stand
         agent = Dagger(load_agent("bid", spec.dagger, spec.dagger_options), agent, spec.late_brake,
                        STALL_STEPS if spec.stall_s is None else round(spec.stall_s / DT_S), spec.late_kinds)
+    walkers = None
+    if spec.walkers:
+        from bid_sim.walkers import CrossingWalkers
+
+        facts["crossing_walkers"] = plan["crossing_walkers"]  # the route's turns met by walkers
+        walkers = CrossingWalkers(spec.walkers, spec.seed)
     heads = [h.position for h in town_map.signal_heads]
     writer = EpisodeWriter(out / f"{spec.name}.mcap", facts, heads)
     try:
         result = run_episode(town, spec.route, spec.weather, spec.density, spec.seed, agent,
-                             recorder=writer, renderer=renderer, max_steps=spec.max_steps)
+                             recorder=writer, renderer=renderer, max_steps=spec.max_steps,
+                             on_start=walkers and walkers.start, on_step=walkers and walkers.step)
     except BaseException:
         writer.abort()
         raise
@@ -192,11 +202,14 @@ def record_episode(spec: EpisodeSpec, out: Path) -> dict:
         end["late_steps"] = agent.late_steps
     if spec.perturb_turns:
         end["late_turns"] = agent.late_turns
+    if walkers is not None:
+        end["walkers"] = len(walkers.sent)
     writer.finish(end)
     return {"name": spec.name, "frames": writer.frames, "status": result.status,
             "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
             **({"student_share": end["student_share"], "late_steps": end["late_steps"]} if spec.dagger else {}),
-            **({"late_turns": end["late_turns"]} if spec.perturb_turns else {})}
+            **({"late_turns": end["late_turns"]} if spec.perturb_turns else {}),
+            **({"walkers": end["walkers"]} if walkers is not None else {})}
 
 
 def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple[str, ...], seed: int,
@@ -204,7 +217,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
            progress: bool = True, perturb: float = 0.0, ray_address: str | None = None,
            dagger: str | None = None, bends: bool = False, dagger_options: dict | None = None,
            late_brake: float = 0.0, stall_s: float | None = None, perturb_turns: float = 0.0,
-           stop_line_gap_m: float | None = None, late_kinds: tuple[str, ...] = ("vehicle",)) -> dict:
+           stop_line_gap_m: float | None = None, late_kinds: tuple[str, ...] = ("vehicle",),
+           walkers: float = 0.0) -> dict:
     """Records the plan's unfinished episodes into `out`; returns a summary.
     bends: only routes that take a bend of the road early (bid_sim.routes.generate_routes).
     dagger: a BID checkpoint that drives while `agent` labels and takes over (bid_sim.perturb.Dagger);
@@ -218,6 +232,9 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
     perturb_turns: the share of junction turns the expert begins late (bid_sim.perturb.Perturbed).
     stop_line_gap_m: how far before a red or amber light's stop line the expert stops (None: its
     own 1 m, bid_sim.expert.ExpertConfig); at 1 m the lamp is above the cameras' view.
+    walkers: the share of the route's turns at which a pedestrian is sent across the crossing
+    the turn leads over as the ego comes (bid_sim.walkers.CrossingWalkers), so that the
+    recordings hold pedestrians in the path of a turning car.
     ray_address: run the episodes as tasks on a Ray cluster instead of `workers` local
     processes (bid_sim.cluster; "" for $RAY_ADDRESS or a local instance)."""
     out = Path(out)
@@ -270,8 +287,10 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
         raise BidError(f"--stop-line-gap is where the expert stops at a red light; got --agent {agent}")
     if stop_line_gap_m is not None and not 0.0 <= stop_line_gap_m <= MAX_STOP_LINE_GAP_M:
         raise BidError(f"--stop-line-gap is a distance from 0 to {MAX_STOP_LINE_GAP_M:g} m; got {stop_line_gap_m}")
+    if not 0.0 <= walkers <= 1.0:
+        raise BidError(f"--crossing-walkers is a share of the route's turns, from 0 (off) to 1; got {walkers}")
     specs = plan_episodes(town, episodes, weathers, densities, seed, agent, max_steps, perturb, dagger, bends,
-                          dagger_options, late_brake, stall_s, perturb_turns, stop_line_gap_m, late_kinds)
+                          dagger_options, late_brake, stall_s, perturb_turns, stop_line_gap_m, late_kinds, walkers)
     plan_town = resolve_town(town)
     plan_tag = net_tag(plan_town)
     for s in specs:
@@ -313,7 +332,8 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
                if dagger and done else {}),
             **({"late_steps": sum(d["late_steps"] for d in done), "late_brake_for": list(late_kinds)}
                if late_brake else {}),
-            **({"late_turns": sum(d["late_turns"] for d in done)} if perturb_turns else {})}
+            **({"late_turns": sum(d["late_turns"] for d in done)} if perturb_turns else {}),
+            **({"walkers": sum(d["walkers"] for d in done)} if walkers else {})}
 
 
 def describe(summary: dict) -> str:
@@ -330,6 +350,8 @@ def describe(summary: dict) -> str:
         lines.append(f"  the expert held back its braking for {what} ahead {summary['late_steps']} steps (--late-brake)")
     if "late_turns" in summary:
         lines.append(f"  the expert began {summary['late_turns']} turns late (--perturb-turns)")
+    if "walkers" in summary:
+        lines.append(f"  {summary['walkers']} walkers sent across the crossings of the routes' turns (--crossing-walkers)")
     lines += [f"  failed {name}: {msg}" for name, msg in summary["failed"]]
     return "\n".join(lines)
 

@@ -180,9 +180,10 @@ class Traffic:
             alive = set(person_ids)
             gone = sorted(p for p, a in self.actors.items() if a.kind == "pedestrian" and p not in alive)
             for pid in gone:
-                self.actors.pop(pid)
+                placed = self.actors.pop(pid).placed
                 self._walk_goal.pop(pid, None)
-                self._add_person()
+                if not placed:  # a scenario's walker that arrived is not replaced
+                    self._add_person()
 
     def _clear_gridlock(self, vehicle_ids: tuple[str, ...]) -> None:
         """Counts, per car, the seconds it has stood with no red or amber light ahead, and

@@ -261,7 +261,7 @@ class World:
         """Adds a pedestrian who stands still at a position on a walkable edge."""
         traci.person.add(pid, edge, pos_m)
         traci.person.appendWaitingStage(pid, wait_s)
-        self.traffic.actors[pid] = ActorInfo("pedestrian", PED_SIZE, 0)
+        self.traffic.actors[pid] = ActorInfo("pedestrian", PED_SIZE, 0, placed=True)
 
     def step_idle(self, n: int = 1) -> None:
         """Steps SUMO with the ego held where it is (tests, warm-up)."""
