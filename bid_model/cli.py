@@ -149,9 +149,13 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-accel", action="store_true", default=None,
                    help="with --train-only CPC and --init: the accel labels are the init control head's own, "
                         "so it learns new steering labels (a DAgger round's) and keeps its throttle and brake")
-    p.add_argument("--keep-hazard", action="store_true", default=None,
-                   help="with --train-only hazard and --init: the head's pedestrian and vehicle targets are the init "
-                        "head's own, so it learns new red-light targets (bid record --stop-line-gap) and keeps the rest")
+    p.add_argument("--keep-hazard", nargs="?", const="pedestrian,vehicle", default=None, metavar="KINDS",
+                   help="with --train-only hazard and --init: the head's targets of these kinds (default "
+                        "pedestrian,vehicle; of pedestrian, vehicle, red_light) are the init head's own, so it learns "
+                        "the others anew (say red lights from bid record --stop-line-gap) and keeps these")
+    p.add_argument("--keep-hazard-standing", action="store_true", default=None,
+                   help="with --keep-hazard: on frames of a standing ego every kind is the init head's own, so the "
+                        "refit changes what the head reads while the car moves only")
     p.add_argument("--out", default=None, help="run folder (default runs/NAME)")
     p.add_argument("--name", default=None, help="run name under runs/ (default PRESET-VARIANT-TIME)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out / --name")

@@ -203,8 +203,10 @@ class TrainConfig:
     train_only: tuple[str, ...] = ()  # the parts trained (BID.parts), the rest frozen; () all (train.freeze_all_but)
     # With train_only CPC from --init: the accel label is the init control head's own (train.KeptAccel).
     keep_accel: bool = False
-    # With train_only hazard from --init: the pedestrian and vehicle targets are the init head's own (train.KeptHazard).
+    # With train_only hazard from --init: the targets of these kinds are the init head's own (train.KeptHazard).
     keep_hazard: bool = False
+    keep_hazard_kinds: tuple[str, ...] = ("pedestrian", "vehicle")  # the kinds kept with keep_hazard (KINDS)
+    keep_hazard_standing: bool = False  # with keep_hazard, every kind kept on frames of a standing ego
     seed: int = 0
     workers: int = 2
     synthetic_samples: int = 2000  # size of the generated dataset of `--synthetic`

@@ -159,31 +159,43 @@ class KeptAccel:
 
 
 class KeptHazard:
-    """`bid train --keep-hazard`: the pedestrian and vehicle targets of the hazard head are the
-    --init checkpoint's head's own outputs on the same features, so that the head fitted alone
-    (--train-only hazard) to new red-light targets, say recordings of the expert standing 2.5 m
-    short of the line (bid record --stop-line-gap), keeps what it says of pedestrians and
-    vehicles: refitted whole on such recordings its pedestrian output moved, its hidden layers
-    being shared by the three outputs (docs/experiments.md)."""
+    """`bid train --keep-hazard [KINDS]`: the hazard head's targets of `kinds` (by default
+    pedestrian and vehicle) are the --init checkpoint's head's own outputs on the same features,
+    so that the head fitted alone (--train-only hazard) to new targets of the other kinds, say
+    red lights from recordings of the expert standing 2.5 m short of the line (bid record
+    --stop-line-gap), or pedestrians met on crossings (bid record --crossing-walkers), keeps
+    what it says of the kept ones: refitted whole on such recordings its other outputs moved,
+    its hidden layers being shared by the three (docs/experiments.md)."""
 
-    def __init__(self, model: BID, state: dict[str, torch.Tensor]):
+    def __init__(self, model: BID, state: dict[str, torch.Tensor],
+                 kinds: tuple[str, ...] = ("pedestrian", "vehicle"), standing: bool = False):
         head = model.hazard_head
         self.reference = _frozen_copy(head, state, "hazard_head.")
+        self.columns = [KINDS.index(kind) for kind in kinds]
+        self.standing = standing  # every kind kept where the ego stands (--keep-hazard-standing)
         self._inputs: tuple | None = None
         head.register_forward_hook(self._keep)
 
     def _keep(self, module: nn.Module, inputs: tuple, output: torch.Tensor) -> None:
         self._inputs = inputs
 
-    def target(self, near: torch.Tensor) -> torch.Tensor:
-        """The head's targets `near` (B, K+1) with the pedestrian and vehicle entries the
-        reference head's on the features of the last forward."""
+    def target(self, near: torch.Tensor, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+        """The head's targets `near` (B, K+1) with the entries of the kept kinds the reference
+        head's on the features of the last forward; with `standing`, all of them on the rows
+        whose recorded `speed_mps` (B,) is below MOVING_MPS."""
         if self._inputs is None:
             raise RuntimeError("KeptHazard.target before a forward of the model")
-        k = len(PATH_KINDS)
         with torch.no_grad():
             own = self.reference(*(x.detach() if isinstance(x, torch.Tensor) else x for x in self._inputs))
-        return torch.cat([own[:, :k].to(near.dtype), near[:, k:]], dim=1)
+        own = own[:, :near.shape[1]].to(near.dtype)
+        near = near.clone()
+        near[:, self.columns] = own[:, self.columns]
+        if self.standing:
+            if speed_mps is None:
+                raise RuntimeError("KeptHazard.target keeps standing frames: give speed_mps")
+            still = speed_mps.reshape(-1) < MOVING_MPS
+            near[still] = own[still]
+        return near
 
 
 def forecast_loss(pred_mps: torch.Tensor, target_mps: torch.Tensor) -> torch.Tensor:
@@ -655,7 +667,7 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             green_m = batch["green_m"].to(device) if "green_m" in batch else None
             weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps,
                        tc.hazard_green_weight, green_m, tc.hazard_vehicle_moving_weight)
-            fit = kept_hazard.target(near[:, :own]) if kept_hazard is not None else None
+            fit = kept_hazard.target(near[:, :own], speed_mps) if kept_hazard is not None else None
             loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights, fit=fit)
             if second is not None:
                 near_2 = second_targets(batch, near[:, :own])
@@ -864,8 +876,16 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     if tc.keep_accel and start_from is None and ckpt is None:
         raise BidError("--keep-accel keeps the accel of the --init checkpoint's control head: add --init CHECKPOINT")
     if tc.keep_hazard and tc.train_only != ("hazard",):
-        raise BidError("--keep-hazard holds the hazard head's pedestrian and vehicle while it alone learns: "
-                       "add --train-only hazard")
+        raise BidError(f"--keep-hazard holds the hazard head's {' and '.join(tc.keep_hazard_kinds)} while it alone "
+                       "learns: add --train-only hazard")
+    if tc.keep_hazard:
+        own = list(KINDS[:2 + config.model.hazard_light])  # the head's outputs (the crossing map is apart)
+        if not tc.keep_hazard_kinds or set(tc.keep_hazard_kinds) - set(own):
+            raise BidError(f"--keep-hazard {','.join(tc.keep_hazard_kinds)}: keep some of this head's kinds, "
+                           f"{', '.join(own)}")
+        if set(tc.keep_hazard_kinds) == set(own):
+            raise BidError(f"--keep-hazard {','.join(tc.keep_hazard_kinds)} keeps every output of the head and "
+                           f"leaves it nothing to learn: keep fewer")
     if tc.keep_hazard and start_from is None and ckpt is None:
         raise BidError("--keep-hazard keeps what the --init checkpoint's hazard head says: add --init CHECKPOINT")
     if tc.train_only:  # a wrong name is refused before the data is opened
@@ -932,7 +952,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         if tc.keep_hazard and not any(k.startswith("hazard_head.") for k in reference):
             raise BidError("--keep-hazard: the --init checkpoint has no hazard head to keep; drop --keep-hazard")
         kept = KeptAccel(model, reference) if tc.keep_accel else None
-        kept_hazard = KeptHazard(model, reference) if tc.keep_hazard else None
+        kept_hazard = (KeptHazard(model, reference, tc.keep_hazard_kinds, tc.keep_hazard_standing)
+                       if tc.keep_hazard else None)
 
     meta = {"git_hash": git_hash(), "version": _version(), "torch": str(torch.__version__)}
     if start_from is not None:
@@ -1072,7 +1093,8 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-crossing": args.hazard_crossing,
              "--stop-keep": args.stop_keep, "--mirror": args.mirror, "--motion-drop": args.motion_drop,
              "--shift": args.shift, "--train-only": args.train_only,
-             "--keep-accel": args.keep_accel or None, "--keep-hazard": args.keep_hazard or None}
+             "--keep-accel": args.keep_accel or None, "--keep-hazard": args.keep_hazard or None,
+             "--keep-hazard-standing": args.keep_hazard_standing or None}
     if args.resume:
         given = [k for k, v in flags.items() if v is not None]
         if given:
@@ -1228,7 +1250,12 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
     if args.keep_accel:
         tc = dataclasses.replace(tc, keep_accel=True)
     if args.keep_hazard:
-        tc = dataclasses.replace(tc, keep_hazard=True)
+        kinds = tuple(kind.strip() for kind in args.keep_hazard.split(",") if kind.strip())
+        tc = dataclasses.replace(tc, keep_hazard=True, keep_hazard_kinds=kinds)
+    if args.keep_hazard_standing:
+        if not args.keep_hazard:
+            raise BidError("--keep-hazard-standing keeps the standing frames of --keep-hazard's refit: add --keep-hazard")
+        tc = dataclasses.replace(tc, keep_hazard_standing=True)
     return RunConfig(model, tc)
 
 

@@ -1125,18 +1125,13 @@ def test_a_move_off_head_reading_the_speed_fits_as_the_first_head_refitted(recor
     assert "add --move-off-head" in err and "\n" not in err
 
 
-def test_keep_hazard_refits_the_red_light_and_holds_the_pedestrian_and_vehicle(recorded, tmp_path, capsys):
-    """--keep-hazard: the hazard head's pedestrian and vehicle targets are the --init head's own on
-    the same features; refitted alone, its red light moves and the other two stay nearer the init's
-    than in a refit without it. Refused without --train-only hazard or an --init."""
+def _hazard_refit(recorded, tmp_path):
+    """A tiny model with a hazard head trained on `recorded` (its last.pt), the flags of a refit of
+    that head alone from it, and its hazard outputs on four random frames (`near(model)`)."""
     base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
             "--hazard", "1"]
     assert bid([*base, "--out", str(tmp_path / "start")]) == 0
     init = tmp_path / "start" / "last.pt"
-    refit = [*base, "--init", str(init), "--train-only", "hazard", "--lr", "3e-3"]
-    assert bid([*refit, "--keep-hazard", "--out", str(tmp_path / "keep")]) == 0
-    assert bid([*refit, "--out", str(tmp_path / "free")]) == 0
-    model, _ = load_model(init, preset="tiny")
     x = torch.randint(0, 255, (4, 3, 32, 96), dtype=torch.uint8)
     cmd = torch.eye(6)[[0, 1, 2, 3]]
 
@@ -1145,6 +1140,17 @@ def test_keep_hazard_refits_the_red_light_and_holds_the_pedestrian_and_vehicle(r
         with torch.no_grad():
             return m(x, x, cmd, hazard=True)[1]
 
+    return base, init, [*base, "--init", str(init), "--train-only", "hazard", "--lr", "3e-3"], near
+
+
+def test_keep_hazard_refits_the_red_light_and_holds_the_pedestrian_and_vehicle(recorded, tmp_path, capsys):
+    """--keep-hazard: the hazard head's pedestrian and vehicle targets are the --init head's own on
+    the same features; refitted alone, its red light moves and the other two stay nearer the init's
+    than in a refit without it. Refused without --train-only hazard or an --init."""
+    base, init, refit, near = _hazard_refit(recorded, tmp_path)
+    assert bid([*refit, "--keep-hazard", "--out", str(tmp_path / "keep")]) == 0
+    assert bid([*refit, "--out", str(tmp_path / "free")]) == 0
+    model, _ = load_model(init, preset="tiny")
     kept = KeptHazard(model, load_checkpoint(init)["model"])
     before = near(model)
     recorded_targets = torch.tensor([[0.9, 0.8, 0.7]] * 4)
@@ -1160,6 +1166,42 @@ def test_keep_hazard_refits_the_red_light_and_holds_the_pedestrian_and_vehicle(r
         assert bid([*base, *flags, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err.strip()
         assert says in err and "\n" not in err, err
+
+
+def test_keep_hazard_kinds_holds_the_kinds_named_and_refits_the_rest(recorded, tmp_path, capsys):
+    """--keep-hazard vehicle,red_light: those two targets are the --init head's own, the
+    pedestrian is refitted (bid record --crossing-walkers data); with --keep-hazard-standing all
+    three are the init head's where the ego stands. Kinds the head lacks, all of its kinds, or
+    --keep-hazard-standing alone are refused."""
+    _, init, refit, near = _hazard_refit(recorded, tmp_path)
+    assert bid([*refit, "--keep-hazard", "vehicle,red_light", "--out", str(tmp_path / "keep")]) == 0
+    assert bid([*refit, "--out", str(tmp_path / "free")]) == 0
+    model, _ = load_model(init, preset="tiny")
+    kept = KeptHazard(model, load_checkpoint(init)["model"], ("vehicle", "red_light"))
+    before = near(model)
+    recorded_targets = torch.tensor([[0.9, 0.8, 0.7]] * 4)
+    target = kept.target(recorded_targets)
+    assert torch.allclose(target[:, 1:], before[:, 1:]) and torch.equal(target[:, 0], recorded_targets[:, 0])
+    # --keep-hazard-standing: where the ego stands, every kind is the init head's own.
+    standing = KeptHazard(model, load_checkpoint(init)["model"], ("vehicle", "red_light"), standing=True)
+    near(model)
+    target = standing.target(recorded_targets, torch.tensor([0.0, 5.0, 0.1, 2.0]))
+    assert torch.allclose(target[[0, 2]], before[[0, 2]])
+    assert torch.equal(target[[1, 3], 0], recorded_targets[[1, 3], 0]) and torch.allclose(target[[1, 3], 1:], before[[1, 3], 1:])
+    after = {run: near(load_model(tmp_path / run / "last.pt", preset="tiny")[0]) for run in ("keep", "free")}
+    drift = {run: float((out[:, 1:] - before[:, 1:]).abs().mean()) for run, out in after.items()}
+    assert drift["keep"] < 0.5 * drift["free"], drift
+    assert float((after["keep"][:, 0] - before[:, 0]).abs().mean()) > 1e-3  # the pedestrian refitted
+    train = load_checkpoint(tmp_path / "keep" / "last.pt")["config"]["train"]
+    assert train["keep_hazard"] is True and tuple(train["keep_hazard_kinds"]) == ("vehicle", "red_light")
+    for kinds, says in (("crossing", "keep some of this head's kinds, pedestrian, vehicle, red_light"),
+                        ("pedestrian,vehicle,red_light", "leaves it nothing to learn: keep fewer")):
+        assert bid([*refit, "--keep-hazard", kinds, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    assert bid([*refit, "--keep-hazard-standing", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--keep-hazard-standing keeps the standing frames of --keep-hazard's refit: add --keep-hazard" in err
 
 
 def test_second_bumper_fits_the_second_heads_vehicle_to_cars_ahead_of_the_bumper(recorded, tmp_path, capsys):
