@@ -92,9 +92,10 @@ class CrossingWalkers:
         while self.meetings and front >= self.meetings[0][1]:
             meeting, _, stand = self.meetings.pop(0)
             self._send(world, meeting, stand)
+        alive = set(traci.person.getIDList()) if self.standing else set()
         for pid in sorted(self.standing):
             x, y, angle, left = self.standing[pid]
-            if left <= 0 or pid not in traci.person.getIDList():
+            if left <= 0 or pid not in alive:
                 del self.standing[pid]  # walks on from where she stood
                 continue
             traci.person.moveToXY(pid, "", x, y, angle, 2)
@@ -102,7 +103,6 @@ class CrossingWalkers:
 
     def _send(self, world, meeting: Meeting, stand_s: float) -> None:
         pid = f"walker{len(self.sent)}"
-        lengths = {e: world.graph.net.getEdge(e).getLength() for e in (meeting.start, meeting.goal)}
         net = world.graph.net
         # Each sidewalk runs along its street's direction: its junction end is its start if the
         # street leaves the crossing's junction, its end if it arrives there.
@@ -110,7 +110,7 @@ class CrossingWalkers:
 
         def at_junction(edge: str) -> float:
             e = net.getEdge(edge)
-            return KERB_M if e.getFromNode().getID() == node else lengths[edge] - KERB_M
+            return KERB_M if e.getFromNode().getID() == node else e.getLength() - KERB_M
 
         speed = float(self.rng.uniform(*WALK_MPS))
         colour = int(self.rng.integers(N_COLOURS))
