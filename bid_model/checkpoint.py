@@ -100,7 +100,8 @@ AUX_HEADS = {"forecast_s": ((), "forecast_head.", "lambda_forecast"),
 HEAD_SHAPE = {"forecast_s": {}, "hazard": {"hazard_light": False, "hazard_attend": False,
                                                    "hazard_sc": False, "sc_presence": False, "sc_still": False,
                                                    "hazard_crossing": False, "hazard_speedless": False,
-                                                   "move_off_head": False, "move_off_speed": False}}
+                                                   "move_off_head": False, "move_off_speed": False,
+                                                   "head_presence": False}}
 
 
 def average_checkpoints(paths: list[str | Path], out: str | Path,

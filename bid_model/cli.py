@@ -91,6 +91,11 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                         "kind, fitted by cross-entropy weighted as --hazard-pos-weight and "
                         "--hazard-turn-weight say) and its nearness is fitted only where one is: it "
                         "reads a nearness where it says yes, none elsewhere")
+    p.add_argument("--head-presence", action="store_true", default=None,
+                   help="with --hazard-sc, the hazard head also says whether a pedestrian is in the path "
+                        "(a logit, fitted by cross-entropy weighted as the --hazard-*-weight flags say) and "
+                        "her nearness is fitted only where she is: an unsure sighting no longer reads as far "
+                        "off; --init from a head without it starts the logit as its nearness >= 0.2")
     p.add_argument("--sc-still", action="store_true", default=None,
                    help="with --hazard-sc, SC reads frame t alone (its change since t-1 zeroed): the "
                         "change is mostly the ego's own motion, from which SC learnt that a moving car "

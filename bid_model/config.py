@@ -27,7 +27,7 @@ VARIANTS: dict[str, dict[str, bool]] = {
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
 INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc",
-                               "sc_presence", "hazard_crossing", "move_off_head"}
+                               "sc_presence", "hazard_crossing", "move_off_head", "head_presence"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -118,6 +118,12 @@ class ModelConfig:
     # same kind fitted to other data or weights (`bid train --move-off-speed`), whose red light
     # move-off can read (BIDAgent's move_off_light) while the brakes keep the first head.
     move_off_speed: bool = False
+    # The hazard head says also whether a pedestrian is in the path at SEEN_NEARNESS or nearer, a
+    # logit fitted apart from her nearness (model.PresenceHazardHead): it reads a nearness only
+    # where it says yes. Under the weighted L1 fit of both, a pedestrian the head was unsure of
+    # read as the low end of the nearness she could have, far off: refitted for a moving ego, the
+    # head saw 45 % of them within 10 m and placed them at a median 16.5 m (docs/experiments.md).
+    head_presence: bool = False
     lesion_momentum: float = 0.05  # running mean of each area's output, for "mean" lesions
 
     def __post_init__(self) -> None:
@@ -145,6 +151,9 @@ class ModelConfig:
             raise ValueError("with hazard_speedless the hazard head already reads no speed: drop move_off_head")
         if self.move_off_speed and not self.move_off_head:
             raise ValueError("move_off_speed is how the move-off head reads: it needs move_off_head")
+        if self.head_presence and not (self.hazard_sc and not self.hazard_attend and not self.move_off_head):
+            raise ValueError("head_presence is a logit beside the plain hazard head's nearness, read with SC: "
+                             "it needs hazard_sc, and neither hazard_attend nor move_off_head")
         if any(not t > 0 for t in self.forecast_s):
             raise ValueError(f"forecast horizons must be positive seconds, got {self.forecast_s}")
 

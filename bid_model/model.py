@@ -86,6 +86,22 @@ class AttendingHazardHead(nn.Module):
         return (h * self.out_weight).sum(-1) + self.out_bias
 
 
+class PresenceHazardHead(nn.Sequential):
+    """The hazard head of config.head_presence: MPC's mean token → hidden layer → the nearness per
+    kind (the plain head's layers, under the same names) and, from the same hidden layer, a logit
+    that a pedestrian is in the path at SEEN_NEARNESS or nearer, its last column. Fitted apart
+    (train.head_presence_loss), the pedestrian's nearness is how near she is given that she is
+    there: an L1 fit on both reads an unsure sighting as far off."""
+
+    def __init__(self, width: int, hidden: int, kinds: int):
+        super().__init__(nn.Linear(width, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, kinds))
+        self.presence = nn.Linear(hidden, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self[1](self[0](x))
+        return torch.cat([self[2](h), self.presence(h)], dim=1)
+
+
 def resize_grid_tokens(state: Mapping[str, torch.Tensor], from_hw: tuple[int, int],
                        model: nn.Module) -> dict[str, torch.Tensor]:
     """`state` (of a model with input `from_hw`) with the positional embeddings of its token
@@ -147,7 +163,8 @@ class BID(nn.Module):
         # Auxiliary hazard head: (pedestrian, vehicle[, red light]) nearness in the path, 1 −
         # distance / HAZARD_AHEAD_M (0: none within it); not an area (no lesions).
         # With config.hazard_attend it attends over V2's and V4's grids as well (AttendingHazardHead).
-        self.hazard_head = self._new_hazard_head() if c.hazard else None
+        # With config.head_presence it says also whether a pedestrian is in the path (PresenceHazardHead).
+        self.hazard_head = self._new_hazard_head(c.head_presence) if c.hazard else None
         # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
         self.hazard_sc = (SC(c.frame_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
                           if c.hazard_sc else None)
@@ -163,10 +180,13 @@ class BID(nn.Module):
         self.register_buffer("mean_batches", torch.zeros((), dtype=torch.long))
         self.lesions: dict[str, str] = {}
 
-    def _new_hazard_head(self) -> nn.Module:
+    def _new_hazard_head(self, presence: bool = False) -> nn.Module:
         """A hazard head: MPC's mean token (with config.hazard_attend all its tokens and V2's
-        and V4's grids, AttendingHazardHead) → (pedestrian, vehicle[, red light]) nearness."""
+        and V4's grids, AttendingHazardHead) → (pedestrian, vehicle[, red light]) nearness; with
+        `presence` then the pedestrian's presence logit (PresenceHazardHead)."""
         c, d = self.config, self.config.width
+        if presence:
+            return PresenceHazardHead(d, c.cpc_hidden[1], 2 + c.hazard_light)
         if c.hazard_attend:
             grids = {name: (c.widths[i], *self.grid_hw()[name]) for i, name in ((1, "V2"), (2, "V4"))}
             return AttendingHazardHead(grids, d, c.cpc_hidden[1], 2 + c.hazard_light)
@@ -178,6 +198,20 @@ class BID(nn.Module):
     def hazard_kinds(self) -> int:
         """How many of bid_model.config.KINDS the hazard head says (0: no head)."""
         return hazard_kinds(self.config)
+
+    def head_columns(self) -> int:
+        """The hazard head's columns in forward_hazard(apart=True): its kinds' nearness, then with
+        config.head_presence the pedestrian's presence logit."""
+        return 2 + int(self.config.hazard_light) + int(self.config.head_presence)
+
+    def gate_head(self, head: torch.Tensor) -> torch.Tensor:
+        """The hazard head's columns (head_columns) as driving reads them: with config.head_presence
+        the pedestrian's nearness only where its logit says she is in the path, else 0."""
+        if not self.config.head_presence:
+            return head
+        n = 2 + int(self.config.hazard_light)
+        pedestrian = torch.where(head[:, n] > 0, head[:, 0], torch.zeros_like(head[:, 0]))
+        return torch.cat([pedestrian[:, None], head[:, 1:n]], dim=1)
 
     def grid_hw(self) -> dict[str, tuple[int, int]]:
         """(rows, cols) of the feature grid of each perception area."""
@@ -323,8 +357,10 @@ class BID(nn.Module):
         config.sc_presence only where its logit says one is in the path; with `apart` the head's
         outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
         then its logits), so that training fits each alone); with config.hazard_crossing the last
-        column is how near an occupied crossing is (its own SC map's), both ways. `move_off`: the
-        same from the second head (config.move_off_head), which reads MPC without the speed
+        column is how near an occupied crossing is (its own SC map's), both ways. With
+        config.head_presence the head's pedestrian counts only where its presence logit says she
+        is in the path (gate_head); `apart` gives the logit after the head's nearness. `move_off`:
+        the same from the second head (config.move_off_head), which reads MPC without the speed
         (config.move_off_speed: with it)."""
         if self.hazard_head is None:
             raise BidError("this model has no hazard head; train it with --hazard")
@@ -337,18 +373,18 @@ class BID(nn.Module):
             near = head({**features, "MPC": mpc})
         else:
             near = head(mpc.mean(dim=1))
-        if self.hazard_sc is not None:  # what either sees in the path
-            crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
-            near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
-            if not apart:
-                near = self.merge_hazard(near)
-        return near
+        if self.hazard_sc is None:
+            return near if apart else self.gate_head(near)
+        # what either sees in the path
+        crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
+        near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
+        return near if apart else self.merge_hazard(near)
 
     def sc_near(self, apart: torch.Tensor) -> torch.Tensor:
         """(batch, 2): SC's own (pedestrian, vehicle) nearness out of forward_hazard(apart=True)'s
         columns (a model with SC); with config.sc_presence only where its logit says one is in the
         path, else 0."""
-        k, n = len(PATH_KINDS), 2 + int(self.config.hazard_light)
+        k, n = len(PATH_KINDS), self.head_columns()
         sc = apart[:, n:n + k * (2 if self.config.sc_presence else 1)]
         if self.config.sc_presence:
             sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
@@ -357,10 +393,12 @@ class BID(nn.Module):
     def merge_hazard(self, apart: torch.Tensor) -> torch.Tensor:
         """forward_hazard(apart=True)'s columns (a model with SC) as forward_hazard gives them: the
         pedestrian's and the vehicle's nearness the larger of the head's and SC's (sc_near), then
-        the head's others, then the crossing map's."""
-        k, n = len(PATH_KINDS), 2 + int(self.config.hazard_light)
+        the head's others, then the crossing map's; the head's pedestrian with config.head_presence
+        only where it says she is in the path (gate_head)."""
+        k, n = len(PATH_KINDS), self.head_columns()
         crossing = apart[:, n + k * (2 if self.config.sc_presence else 1):]
-        return torch.cat([torch.maximum(apart[:, :k], self.sc_near(apart)), apart[:, k:n], crossing], dim=1)
+        head = self.gate_head(apart[:, :n])
+        return torch.cat([torch.maximum(head[:, :k], self.sc_near(apart)), head[:, k:], crossing], dim=1)
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,

@@ -81,6 +81,7 @@ log = logging.getLogger(__name__)
 DEFAULT_DATA = Path("data/town01")
 MAX_HAZARD_AHEAD_S = 5.0  # --hazard-ahead: pedestrians farther in the future are guesses
 MAX_BUMPER_M = HAZARD_AHEAD_M  # --second-bumper: the head says no farther
+PRESENCE_GAIN = 10.0  # warm_start_presence: the new logit per unit of nearness past SEEN_NEARNESS
 PLOT_EVERY_S = 60.0  # plots are redrawn at most this often, and after the last epoch
 METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_accel",
                   "const_mae_steer", "const_mae_accel", "val_mae_forecast_mps", "val_mae_hazard_m", "val_ped_seen_near", "val_ped_seen_none",
@@ -129,7 +130,12 @@ def set_train_mode(model: BID, tc: TrainConfig) -> None:
 def _frozen_copy(module: nn.Module, state: dict[str, torch.Tensor], prefix: str) -> nn.Module:
     """A frozen copy of `module` holding the weights `state` (a checkpoint's) keeps under `prefix`."""
     reference = copy.deepcopy(module).eval().requires_grad_(False)
-    reference.load_state_dict({k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)})
+    own = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+    missing, unexpected = reference.load_state_dict(own, strict=False)
+    # A head with a presence logit (model.PresenceHazardHead) kept to a plain head's outputs: the
+    # logit is not among the outputs kept.
+    if unexpected or any(not k.startswith("presence.") for k in missing):
+        raise RuntimeError(f"the reference {prefix[:-1]} does not fit: missing {missing}, unexpected {unexpected}")
     return reference
 
 
@@ -302,6 +308,30 @@ def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1
     bce = nn.functional.binary_cross_entropy_with_logits(logit, present.float(), reduction="none")
     distance = (near - target).abs()[present].mean() if present.any() else near.sum() * 0.0
     return (weight * bce).sum() / weight.sum() + distance
+
+
+def head_presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
+                       turn_weight: float = 1.0, command: torch.Tensor | None = None,
+                       moving_weight: float = 1.0, speed_mps: torch.Tensor | None = None,
+                       green_weight: float = 1.0, green_m: torch.Tensor | None = None,
+                       vehicle_moving_weight: float = 1.0, fit: torch.Tensor | None = None) -> torch.Tensor:
+    """Loss of the hazard head with a pedestrian presence logit (model.PresenceHazardHead; out
+    (B, K+1): the nearness per kind, then the logit) against the nearness targets (B, K): the
+    other kinds' weighted L1 as hazard_loss; the logit's binary cross-entropy on "a pedestrian
+    in the path at SEEN_NEARNESS or nearer", weighted by hazard_weights' pedestrian column; and
+    the pedestrian's nearness' L1 error on the rows where she is, only. `fit`, if given, is what
+    is fitted in place of `target` (KeptHazard), the weights still following `target`."""
+    k = target.shape[1]
+    fit = target if fit is None else fit
+    weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
+                            green_weight, green_m, vehicle_moving_weight)
+    out = out.float()
+    others = (weight[:, 1:] * (out[:, 1:k] - fit[:, 1:]).abs()).sum() / weight[:, 1:].sum()
+    present = fit[:, 0] >= SEEN_NEARNESS
+    bce = nn.functional.binary_cross_entropy_with_logits(out[:, k], present.float(), reduction="none")
+    presence = (weight[:, 0] * bce).sum() / weight[:, 0].sum()
+    distance = (out[:, 0] - fit[:, 0]).abs()[present].mean() if present.any() else out[:, 0].sum() * 0.0
+    return others + presence + distance
 
 
 def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, float | None]]:
@@ -664,11 +694,13 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
             near = batch["hazard"].to(device)
             k, crossing = len(PATH_KINDS), base.config.hazard_crossing
             own = 2 + base.config.hazard_light  # the head's, then SC's, then the crossing map's
+            head_end = base.head_columns()  # with the head's presence logit after its nearness
             green_m = batch["green_m"].to(device) if "green_m" in batch else None
             weights = (tc.hazard_pos_weight, tc.hazard_turn_weight, inputs[2], tc.hazard_moving_weight, speed_mps,
                        tc.hazard_green_weight, green_m, tc.hazard_vehicle_moving_weight)
             fit = kept_hazard.target(near[:, :own], speed_mps) if kept_hazard is not None else None
-            loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, :own], near[:, :own], *weights, fit=fit)
+            head_loss = head_presence_loss if base.config.head_presence else hazard_loss
+            loss = loss + tc.lambda_hazard * head_loss(hazard[:, :head_end], near[:, :own], *weights, fit=fit)
             if second is not None:
                 near_2 = second_targets(batch, near[:, :own])
                 loss = loss + tc.lambda_hazard * hazard_loss(second[:, :own], near_2, *weights,
@@ -676,8 +708,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
                                                                                 tc.second_bumper_weight))
             if apart:
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
-                sc_end = own + k * (1 + base.config.sc_presence)
-                loss = loss + tc.lambda_hazard * sc_loss(hazard[:, own:sc_end], near[:, :k], *weights)
+                sc_end = head_end + k * (1 + base.config.sc_presence)
+                loss = loss + tc.lambda_hazard * sc_loss(hazard[:, head_end:sc_end], near[:, :k], *weights)
             if crossing:
                 at = KINDS.index("crossing")
                 loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, -1:], near[:, at:at + 1], *weights)
@@ -802,6 +834,21 @@ def warm_start_move_off(model: BID, state: dict[str, torch.Tensor], fresh: list[
             tensor.copy_(theirs)
             started.append(f"hazard_move_off.{name}")
     return sorted(set(fresh) - set(started))
+
+
+def warm_start_presence(model: BID, state: dict[str, torch.Tensor], fresh: list[str]) -> list[str]:
+    """A presence logit (model.PresenceHazardHead) that `state`'s head lacks starts as "the
+    pedestrian's nearness is SEEN_NEARNESS or more", PRESENCE_GAIN times that margin, on the
+    same hidden layer: the head with it starts reading what the head without it read wherever
+    the brakes act. Returns `fresh` less the tensors so started."""
+    theirs_w, theirs_b = state.get("hazard_head.2.weight"), state.get("hazard_head.2.bias")
+    if not (model.config.head_presence and "hazard_head.presence.weight" in fresh) or theirs_w is None:
+        return fresh
+    presence = model.hazard_head.presence
+    with torch.no_grad():
+        presence.weight.copy_(PRESENCE_GAIN * theirs_w[:1])
+        presence.bias.copy_(PRESENCE_GAIN * (theirs_b[:1] - SEEN_NEARNESS))
+    return sorted(set(fresh) - {"hazard_head.presence.weight", "hazard_head.presence.bias"})
 
 
 # --- the run ----------------------------------------------------------------------------------
@@ -936,6 +983,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
             state = resize_grid_tokens(state, tuple(theirs.frame_hw), model)
         fresh = load_shared_weights(model, state)
         fresh = warm_start_move_off(model, state, warm_start_crossing(model, state, fresh))
+        fresh = warm_start_presence(model, state, fresh)
     elif start_from is not None:
         model.load_state_dict(start_from["model"])
     kept = kept_hazard = None
@@ -1087,6 +1135,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-vehicle-moving-weight": args.hazard_vehicle_moving_weight,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
+             "--head-presence": args.head_presence,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
              "--move-off-speed": args.move_off_speed, "--second-bumper": args.second_bumper,
              "--second-bumper-weight": args.second_bumper_weight,
@@ -1203,6 +1252,11 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard_sc:
             raise BidError("--sc-presence is a part of SC: add --hazard-sc (and --hazard WEIGHT)")
         model = dataclasses.replace(model, sc_presence=True)
+    if args.head_presence:
+        if not model.hazard_sc or model.hazard_attend or model.move_off_head or args.move_off_head:
+            raise BidError("--head-presence is a logit beside the plain hazard head, read with SC: add --hazard-sc "
+                           "(and --hazard WEIGHT), without --hazard-attend or --move-off-head")
+        model = dataclasses.replace(model, head_presence=True)
     if args.sc_still:
         if not model.hazard_sc:
             raise BidError("--sc-still is how SC reads: add --hazard-sc (and --hazard WEIGHT)")

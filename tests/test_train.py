@@ -1204,6 +1204,60 @@ def test_keep_hazard_kinds_holds_the_kinds_named_and_refits_the_rest(recorded, t
     assert "--keep-hazard-standing keeps the standing frames of --keep-hazard's refit: add --keep-hazard" in err
 
 
+def test_head_presence_reads_the_pedestrian_only_where_its_logit_says_she_is(recorded, tmp_path, capsys):
+    """--head-presence: the hazard head's last column is a logit that a pedestrian is in the path
+    (at SEEN_NEARNESS or nearer); driving reads her nearness only where it is above 0. Started
+    from a head without it, the logit starts as "her nearness is 0.2 or more" and everything but
+    the head carries over; training fits the logit by cross-entropy and her nearness only where
+    she is; the vehicle and red light can be kept (--keep-hazard vehicle,red_light)."""
+    from bid_model.hazards import SEEN_NEARNESS
+    from bid_model.train import head_presence_loss, warm_start_presence
+
+    # The loss: her nearness is fitted only where she is in the path; the other kinds as ever.
+    target = torch.tensor([[0.6, 0.0, 0.3], [0.1, 0.4, 0.0]])  # the second pedestrian too far to count
+    out = torch.tensor([[0.5, 0.9, 0.3, -3.0], [0.5, 0.4, 0.2, 3.0]], requires_grad=True)
+    head_presence_loss(out, target).backward()
+    assert out.grad[0, 0] < 0 and out.grad[1, 0] == 0  # no nearness fitted where she is not
+    assert out.grad[0, 3] < 0 and out.grad[1, 3] > 0  # yes where she is, no where she is not
+    assert out.grad[0, 1] > 0 and out.grad[1, 2] > 0  # the vehicle and the red light fitted as hazard_loss
+
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--hazard", "1", "--hazard-sc"]
+    assert bid([*base, "--out", str(tmp_path / "sc")]) == 0
+    start = load_checkpoint(tmp_path / "sc" / "last.pt")
+    config = dataclasses.replace(model_config_from_dict(start["config"]["model"]), head_presence=True)
+    model = BID(config)
+    fresh = load_shared_weights(model, start["model"])
+    assert fresh == ["hazard_head.presence.bias", "hazard_head.presence.weight"]
+    assert warm_start_presence(model, start["model"], fresh) == []
+    plain, _ = load_model(tmp_path / "sc" / "last.pt", preset="tiny")
+    feats = torch.randn(64, config.width)
+    with torch.no_grad():
+        before, after = plain.hazard_head(feats), model.hazard_head(feats)
+    assert after.shape == (64, 4) and torch.allclose(after[:, :3], before)
+    assert torch.equal(after[:, 3] > 0, before[:, 0] > SEEN_NEARNESS)
+    gated = model.gate_head(after)
+    assert torch.equal(gated[:, 0], torch.where(before[:, 0] > SEEN_NEARNESS, after[:, 0], torch.zeros(64)))
+
+    refit = [*base, "--init", str(tmp_path / "sc" / "last.pt"), "--head-presence", "--train-only", "hazard",
+             "--lr", "3e-3", "--hazard-pos-weight", "4"]
+    assert bid([*refit, "--keep-hazard", "vehicle,red_light", "--keep-hazard-standing", "--out", str(tmp_path / "hp")]) == 0
+    tuned = load_checkpoint(tmp_path / "hp" / "last.pt")
+    assert tuned["config"]["model"]["head_presence"] and "hazard_head.presence.weight" in tuned["model"]
+    assert all(torch.equal(v, tuned["model"][k]) for k, v in start["model"].items()
+               if not k.startswith("hazard_head."))  # only the head moved
+    near, apart = hazard_outputs(tmp_path / "hp" / "last.pt")
+    assert apart.shape == (4, 6)  # the head's three nearnesses, its pedestrian logit, SC's two
+    head = torch.where(apart[:, 3] > 0, apart[:, 0], torch.zeros(4))
+    assert torch.allclose(near[:, 0], torch.maximum(head, apart[:, 4]))
+    assert torch.allclose(near[:, 1], torch.maximum(apart[:, 1], apart[:, 5])) and torch.allclose(near[:, 2], apart[:, 2])
+    for flags in (["--head-presence"], ["--hazard-attend", "--head-presence"], ["--move-off-head", "--head-presence"]):
+        args = ["train", "--preset", "tiny", "--data", str(recorded), "--hazard", "1", *flags, "--out", str(tmp_path / "x")]
+        assert bid([*args, *(["--hazard-sc"] if flags != ["--head-presence"] else [])]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--head-presence is a logit beside the plain hazard head" in err and "\n" not in err, err
+
+
 def test_second_bumper_fits_the_second_heads_vehicle_to_cars_ahead_of_the_bumper(recorded, tmp_path, capsys):
     """--second-bumper M: the second head's vehicle target is the nearer of the path's vehicle
     and the one within M m ahead of the bumper (recordings.bumper_targets); its other targets,
