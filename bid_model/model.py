@@ -209,7 +209,7 @@ class BID(nn.Module):
         the pedestrian's nearness only where its logit says she is in the path, else 0."""
         if not self.config.head_presence:
             return head
-        n = 2 + int(self.config.hazard_light)
+        n = self.head_columns() - 1  # the logit's column, after the kinds' nearness
         pedestrian = torch.where(head[:, n] > 0, head[:, 0], torch.zeros_like(head[:, 0]))
         return torch.cat([pedestrian[:, None], head[:, 1:n]], dim=1)
 
@@ -373,8 +373,8 @@ class BID(nn.Module):
             near = head({**features, "MPC": mpc})
         else:
             near = head(mpc.mean(dim=1))
-        if self.hazard_sc is None:
-            return near if apart else self.gate_head(near)
+        if self.hazard_sc is None:  # head_presence needs SC: nothing to gate here
+            return near
         # what either sees in the path
         crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
         near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
