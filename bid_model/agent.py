@@ -51,6 +51,10 @@ REMEMBER_M = 6.0
 # A remembered actor draws nearer by the distance driven, at most this far: a false sighting
 # 5 m ahead, drawn nearer by a creeping ego, held it standing in crowded traffic.
 MEMORY_CLOSE_M = 2.0
+# `pedestrian_memory`: a pedestrian seen in the path this close is remembered, drawn nearer by all
+# the distance driven. Turning at 3-5 m/s, the hazard head sees one standing on the exit crossing
+# at 5-8 m for about a second and loses her for the last 3-5 m (docs/experiments.md).
+PEDESTRIAN_REMEMBER_M = 8.0
 # `crossing_brake`: stop this far short of a crossing with a pedestrian on it, as the expert does.
 CROSSING_SHORT_M = 2.0
 # ...and keep a slow (< START_MPS) ego standing while one is seen this close: at a red light the
@@ -145,26 +149,30 @@ def clear_to_move_off(near: tuple[float, ...]) -> bool:
 
 
 class PathMemory:
-    """The pedestrian and the vehicle last seen in the path within REMEMBER_M, kept `keep_s`
-    seconds once the detectors lose them, drawn nearer by the distance the ego drives meanwhile
-    (as if standing; by MEMORY_CLOSE_M at most). `update` gives the nearness the brakes and
-    move-off read: the larger of what the head sees now and what is remembered. A working
+    """The pedestrian and the vehicle last seen in the path within `remember_m` (REMEMBER_M), kept
+    `keep_s` seconds once the detectors lose them, drawn nearer by the distance the ego drives
+    meanwhile (as if standing; by `close_m`, MEMORY_CLOSE_M, at most; None: all the way). `update`
+    gives the nearness the brakes and move-off read: the larger of what the head sees now and
+    what is remembered. `kinds` are the PATH_KINDS indices kept (0 pedestrian, 1 vehicle); only
+    sightings at `learn_mps` or faster are remembered (slower, the memory only ages). A working
     memory beside the network, which itself sees two frames only."""
 
-    def __init__(self, keep_s: float):
+    def __init__(self, keep_s: float, kinds: tuple[int, ...] = (0, 1), remember_m: float = REMEMBER_M,
+                 close_m: float | None = MEMORY_CLOSE_M, learn_mps: float = 0.0):
         self.keep_steps = round(keep_s / DT_S)
+        self.kinds, self.remember_m, self.close_m, self.learn_mps = kinds, remember_m, close_m, learn_mps
         self.reset()
 
     def reset(self) -> None:
-        self._dist_m: list[float | None] = [None, None]  # pedestrian, vehicle
-        self._seen_m = [0.0, 0.0]  # where each was last seen
-        self._unseen = [0, 0]  # steps since last seen within REMEMBER_M
+        self._dist_m: dict[int, float | None] = dict.fromkeys(self.kinds)
+        self._seen_m = dict.fromkeys(self.kinds, 0.0)  # where each was last seen
+        self._unseen = dict.fromkeys(self.kinds, 0)  # steps since last seen within remember_m
 
     def update(self, near: tuple[float, ...], speed_mps: float) -> tuple[float, ...]:
         out = list(near)
-        for k in range(2):
+        for k in self.kinds:
             seen_m = (1.0 - min(near[k], 1.0)) * HAZARD_AHEAD_M if near[k] >= SEEN_NEARNESS else None
-            if seen_m is not None and seen_m <= REMEMBER_M:
+            if seen_m is not None and seen_m <= self.remember_m and speed_mps >= self.learn_mps:
                 self._dist_m[k] = self._seen_m[k] = seen_m
                 self._unseen[k] = 0
                 continue
@@ -174,7 +182,8 @@ class PathMemory:
             if self._unseen[k] > self.keep_steps:
                 self._dist_m[k] = None
                 continue
-            self._dist_m[k] = max(self._dist_m[k] - speed_mps * DT_S, self._seen_m[k] - MEMORY_CLOSE_M, 0.0)
+            floor = 0.0 if self.close_m is None else self._seen_m[k] - self.close_m
+            self._dist_m[k] = max(self._dist_m[k] - speed_mps * DT_S, floor, 0.0)
             out[k] = max(out[k], 1.0 - self._dist_m[k] / HAZARD_AHEAD_M)
         return tuple(out)
 
@@ -219,6 +228,12 @@ class BIDAgent:
     path_memory: seconds; a pedestrian or vehicle seen in the path within REMEMBER_M is remembered
     this long once the hazard head loses it (PathMemory), for the brakes and move-off, and a
     vehicle within VEHICLE_HOLD_M holds a slow ego (`vehicle_brake`'s hold) (0: neither).
+    pedestrian_memory: seconds; the pedestrian alone, seen in the path within
+    PEDESTRIAN_REMEMBER_M by an ego at START_MPS or faster, is remembered this long once the hazard
+    head loses her, drawn nearer by all the distance driven since (PathMemory), for the brakes
+    (0: not). Move-off reads the head as it sees now: remembered too, a pedestrian read on the
+    kerb 7-7.5 m off kept a standing ego from moving off until the episode's time ran out
+    (docs/experiments.md).
     pedestrian_hold: metres; with hazard_brake, a pedestrian seen in the path within this keeps
     a slow ego standing (HOLD_M when None; 0: never held, only stopped short of). A detector
     that reads pedestrians waiting on the kerb as in the path 7-7.5 m off held the ego through
@@ -285,7 +300,7 @@ class BIDAgent:
     def __init__(self, checkpoint: str | Path, lesions: Mapping[str, str] | None = None,
                  threads: int = 1, gradcam_area: str = "IT", forecast_brake: float = 0.0,
                  hazard_brake: float = 0.0, vehicle_brake: float = 0.0, light_brake: float = 0.0,
-                 move_off: float = 0.0, path_memory: float = 0.0, pedestrian_hold: float | None = None,
+                 move_off: float = 0.0, path_memory: float = 0.0, pedestrian_memory: float = 0.0, pedestrian_hold: float | None = None,
                  max_speed: float = 0.0, crossing_brake: float = 0.0, start_cap: float = 0.0,
                  start_cap_m: float | None = None, sc_still: bool = False, move_off_to: float | None = None,
                  sc_still_moving: bool = False, move_off_braked: float | None = None,
@@ -315,6 +330,7 @@ class BIDAgent:
         self.forecast_brake = forecast_brake
         for name, gain in (("hazard_brake", hazard_brake), ("vehicle_brake", vehicle_brake),
                            ("light_brake", light_brake), ("move_off", move_off), ("path_memory", path_memory),
+                           ("pedestrian_memory", pedestrian_memory),
                            ("crossing_brake", crossing_brake)):
             if not gain >= 0:
                 raise BidError(f"{name} must be 0 or more; got {gain}")
@@ -346,8 +362,9 @@ class BIDAgent:
         if move_off_sc and not self.config.model.hazard_sc:
             raise BidError(f"{checkpoint} has no SC for move_off_sc to read; train one with --hazard-sc, "
                            "or drop move_off_sc")
-        if move_off_sc and path_memory:
-            raise BidError("move_off_sc reads SC as it sees now, path_memory what was seen; keep one")
+        for name, memory in (("path_memory", path_memory), ("pedestrian_memory", pedestrian_memory)):
+            if move_off_sc and memory:
+                raise BidError(f"move_off_sc reads SC as it sees now, {name} what was seen; keep one")
         self.move_off_sc = move_off_sc
         if move_off_light and not (move_off and self.config.model.move_off_head):
             raise BidError(f"move_off_light is the red light move_off reads from the move-off head; "
@@ -395,6 +412,13 @@ class BIDAgent:
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
             raise BidError("path_memory is read by the brakes and move-off; add hazard_brake, vehicle_brake "
                            "or move_off, or drop it")
+        if pedestrian_memory > 0:
+            if self.memory is not None:
+                raise BidError("path_memory already remembers the pedestrian; keep path_memory or pedestrian_memory")
+            if not hazard_brake:
+                raise BidError("pedestrian_memory is read by the pedestrian brake; add hazard_brake, or drop it")
+            self.memory = PathMemory(pedestrian_memory, kinds=(0,), remember_m=PEDESTRIAN_REMEMBER_M, close_m=None,
+                                     learn_mps=START_MPS)
         if pedestrian_hold is not None:
             if not 0 <= pedestrian_hold <= HAZARD_AHEAD_M:
                 raise BidError(f"pedestrian_hold is a distance from 0 to {HAZARD_AHEAD_M:g} m; got {pedestrian_hold}")
@@ -500,8 +524,9 @@ class BIDAgent:
                 _, still = self.model(frame, frame, cmd, speed, hazard=True, hazard_apart=self.move_off_sc)
                 light = float(still[0, k])
                 near, clear_near = (*near[:k], light, *near[k + 1:]), (*clear_near[:k], light, *clear_near[k + 1:])
-            if self.memory is not None:
-                near = clear_near = self.memory.update(near, v)
+            if self.memory is not None:  # the pedestrian memory is the brakes' alone: see pedestrian_memory
+                near = self.memory.update(near, v)
+                clear_near = near if 1 in self.memory.kinds else clear_near
             self.near = near
             if self.green_steps is not None:
                 red_near = near[2] >= CLEAR_READ
@@ -510,7 +535,7 @@ class BIDAgent:
             if self.move_off_steps:
                 accel = self._move_off(accel, v, clear_near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
-                       self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None),
+                       self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None and 1 in self.memory.kinds),
                        self.light_brake * light_brake(near[2], v, self.light_short_m) if self.light_brake > 0 else 0.0,
                        self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
             if self.light_hold and v < START_MPS and near[2] >= CLEAR_READ and not self._moving_off:

@@ -132,7 +132,8 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
     none; `misplaced`, when not None, is the error's end for a flag given where no BID drives."""
     given = {"forecast_brake": args.forecast_brake, "hazard_brake": args.hazard_brake,
              "vehicle_brake": args.vehicle_brake, "light_brake": args.light_brake, "move_off": args.move_off,
-             "path_memory": args.path_memory, "pedestrian_hold": args.pedestrian_hold,
+             "path_memory": args.path_memory, "pedestrian_memory": args.pedestrian_memory,
+             "pedestrian_hold": args.pedestrian_hold,
              "max_speed": args.max_speed, "crossing_brake": args.crossing_brake,
              "start_cap": args.start_cap, "start_cap_m": args.start_cap_m, "sc_still": args.sc_still,
              "move_off_to": args.move_off_to, "sc_still_moving": args.sc_still_moving,
@@ -246,6 +247,11 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                         "the path within 6 m counts for the brakes and move-off S seconds after the head "
                         "loses it, nearer by the distance driven since (2 m at most); and a vehicle within "
                         "3 m holds an ego slower than 2 m/s (bid_model/agent.py)")
+    g.add_argument("--pedestrian-memory", type=float, default=None, metavar="S",
+                   help="--agent bid with --hazard-brake: a pedestrian its hazard head saw in the path "
+                        "within 8 m, driving at 2 m/s or faster, counts for the brakes S seconds after the head "
+                        "loses her, nearer by all the distance driven since (not with --path-memory) "
+                        "(bid_model/agent.py)")
     g.add_argument("--pedestrian-hold", type=float, default=None, metavar="M",
                    help="--agent bid with --hazard-brake: a pedestrian seen in the path within M metres "
                         "keeps an ego slower than 2 m/s standing (default 8, as the expert; 0: never "

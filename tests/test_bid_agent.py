@@ -353,6 +353,33 @@ def test_path_memory_keeps_what_was_seen_near_once_the_head_loses_it():
     assert mem.update((0.0, 0.0, 0.0), 3.0)[1] == pytest.approx(1 - 4.7 / 25)
 
 
+def test_pedestrian_memory_keeps_her_alone_and_draws_her_nearer_all_the_way():
+    from bid_model.agent import PEDESTRIAN_REMEMBER_M, PathMemory, pedestrian_brake
+
+    mem = PathMemory(keep_s=1.0, kinds=(0,), remember_m=PEDESTRIAN_REMEMBER_M, close_m=None, learn_mps=2.0)
+    # Seen 7.5 m ahead (within 8 m, farther than path_memory's 6 m), a car 5 m ahead beside her.
+    assert mem.update((0.7, 0.8, 0.0), 4.0) == pytest.approx((0.7, 0.8, 0.0))
+    got = mem.update((0.0, 0.0, 0.0), 4.0)  # both lost: she stays, 0.4 m nearer; the car goes
+    assert got[0] == pytest.approx(1 - 7.1 / 25) and got[1] == 0.0
+    for _ in range(9):  # driven on at 4 m/s: 3.6 m more, past the 2 m path_memory stops at
+        got = mem.update((0.0, 0.0, 0.0), 4.0)
+    assert got[0] == pytest.approx(1 - 3.5 / 25)
+    assert pedestrian_brake(got[0], 4.0) == pytest.approx(16 / (2 * 1.5) / 8)  # to stop 2 m short of her
+    assert pedestrian_brake(got[0], 1.0) == 1.0  # slow within the hold: held
+    assert mem.update((0.0, 0.0, 0.0), 0.0) == (0.0, 0.0, 0.0)  # the 11th step unseen: forgotten
+    mem.update((0.9, 0.0, 0.0), 6.0)  # 2.5 m ahead, then 3 m driven: she is at the bumper, not behind it
+    assert mem.update((0.0, 0.0, 0.0), 30.0)[0] == pytest.approx(1.0)
+    mem.reset()
+    mem.update((0.66, 0.0, 0.0), 4.0)  # 8.5 m ahead: not kept
+    assert mem.update((0.0, 0.0, 0.0), 4.0) == (0.0, 0.0, 0.0)
+    mem.update((0.8, 0.0, 0.0), 1.0)  # seen by an ego slower than 2 m/s: not kept...
+    assert mem.update((0.0, 0.0, 0.0), 1.0) == (0.0, 0.0, 0.0)
+    mem.update((0.8, 0.0, 0.0), 3.0)  # ...and a memory the slow ego reads again only ages
+    for _ in range(10):
+        mem.update((0.8, 0.0, 0.0), 0.0)
+    assert mem.update((0.0, 0.0, 0.0), 0.0) == (0.0, 0.0, 0.0)
+
+
 def test_clear_to_move_off_needs_nothing_seen_within_8_m():
     from bid_model.agent import clear_to_move_off
 
@@ -614,13 +641,22 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         BIDAgent(tmp_path / "hz" / "last.pt", path_memory=3.0)
     with pytest.raises(BidError, match="path_memory must be 0 or more"):
         BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, path_memory=-1.0)
+    with pytest.raises(BidError, match="pedestrian_memory is read by the pedestrian brake"):
+        BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, pedestrian_memory=3.0)
+    with pytest.raises(BidError, match="keep path_memory or pedestrian_memory"):
+        BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, path_memory=3.0, pedestrian_memory=3.0)
+    with pytest.raises(BidError, match="pedestrian_memory must be 0 or more"):
+        BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, pedestrian_memory=-1.0)
+    walker = BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, vehicle_brake=1.0, pedestrian_memory=3.0)
+    assert walker.memory.kinds == (0,)
+    walker.act(obs)  # the vehicle brake does not hold: the memory keeps no vehicle
     with pytest.raises(BidError, match="pedestrian_hold is read by the pedestrian brake"):
         BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, pedestrian_hold=6.0)
     for hold in (-1.0, 26.0, float("nan")):
         with pytest.raises(BidError, match="pedestrian_hold is a distance from 0 to 25 m"):
             BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, pedestrian_hold=hold)
     for flag in ("--hazard-brake", "--vehicle-brake", "--light-brake", "--move-off", "--path-memory",
-                 "--pedestrian-hold", "--move-off-to"):
+                 "--pedestrian-memory", "--pedestrian-hold", "--move-off-to"):
         assert main(["evaluate", "--agent", "expert", flag, "1", "--out", str(tmp_path / "x")]) == 2
         assert f"{flag} is an option of --agent bid" in capsys.readouterr().err
 
