@@ -177,6 +177,10 @@ class KeptHazard:
                  kinds: tuple[str, ...] = ("pedestrian", "vehicle"), standing: bool = False):
         head = model.hazard_head
         self.reference = _frozen_copy(head, state, "hazard_head.")
+        # A reference with a presence logit of its own (--head-presence) fits her nearness only where
+        # she is, so its nearness elsewhere means nothing: kept, it is read as driving reads it, gated.
+        self._gate = (model.gate_head if any(k.startswith("hazard_head.presence.") for k in state)
+                      else None)
         self.columns = [KINDS.index(kind) for kind in kinds]
         self.standing = standing  # every kind kept where the ego stands (--keep-hazard-standing)
         self._inputs: tuple | None = None
@@ -193,6 +197,7 @@ class KeptHazard:
             raise RuntimeError("KeptHazard.target before a forward of the model")
         with torch.no_grad():
             own = self.reference(*(x.detach() if isinstance(x, torch.Tensor) else x for x in self._inputs))
+            own = own if self._gate is None else self._gate(own)
         own = own[:, :near.shape[1]].to(near.dtype)
         near = near.clone()
         near[:, self.columns] = own[:, self.columns]

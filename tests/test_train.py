@@ -1251,6 +1251,16 @@ def test_head_presence_reads_the_pedestrian_only_where_its_logit_says_she_is(rec
     head = torch.where(apart[:, 3] > 0, apart[:, 0], torch.zeros(4))
     assert torch.allclose(near[:, 0], torch.maximum(head, apart[:, 4]))
     assert torch.allclose(near[:, 1], torch.maximum(apart[:, 1], apart[:, 5])) and torch.allclose(near[:, 2], apart[:, 2])
+    # Kept from a reference with a logit of its own, her nearness is read gated, as driving reads it:
+    # where its logit says no, 0, whatever the (unfitted) nearness column holds.
+    again = BID(config)
+    load_shared_weights(again, tuned["model"])
+    kept = KeptHazard(again, tuned["model"], ("vehicle", "red_light"), standing=True)
+    with torch.no_grad():
+        out = again.hazard_head(feats)
+    fit = kept.target(torch.zeros(64, 3), torch.zeros(64))  # all standing: every kind the reference's
+    assert torch.equal(fit, again.gate_head(out))
+    assert torch.equal(fit[:, 0], torch.where(out[:, 3] > 0, out[:, 0], torch.zeros(64)))
     for flags in (["--head-presence"], ["--hazard-attend", "--head-presence"], ["--move-off-head", "--head-presence"]):
         args = ["train", "--preset", "tiny", "--data", str(recorded), "--hazard", "1", *flags, "--out", str(tmp_path / "x")]
         assert bid([*args, *(["--hazard-sc"] if flags != ["--head-presence"] else [])]) == 2
