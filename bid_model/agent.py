@@ -53,7 +53,9 @@ REMEMBER_M = 6.0
 MEMORY_CLOSE_M = 2.0
 # `pedestrian_memory`: a pedestrian seen in the path this close is remembered, drawn nearer by all
 # the distance driven. Turning at 3-5 m/s, the hazard head sees one standing on the exit crossing
-# at 5-8 m for about a second and loses her for the last 3-5 m (docs/experiments.md).
+# at 5-8 m for about a second and loses her for the last 3-5 m. Remembered, she was held where
+# the head placed her, too far: the ego stood across her way (docs/experiments.md, "Remembering
+# a pedestrian the head loses"; opt-in).
 PEDESTRIAN_REMEMBER_M = 8.0
 # `crossing_brake`: stop this far short of a crossing with a pedestrian on it, as the expert does.
 CROSSING_SHORT_M = 2.0
