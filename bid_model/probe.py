@@ -23,7 +23,7 @@ import torch
 from bid_model.checkpoint import load_model
 from bid_model.config import KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M
+from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
 from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection, second_targets
 from bid_sim.errors import BidError
@@ -31,22 +31,44 @@ from bid_sim.errors import BidError
 # Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
 # see wrongly more too, and a brake can start higher (SEEN_NEARNESS is where the brakes start).
 THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6)
+# The close band read apart: the closed loop's pedestrian contacts were seen at 5-8 m and then
+# lost or read far in the last metres (docs/experiments.md), which the share within NEAR_M hides.
+CLOSE_M = 4.0
+
+
+def _median_m(nearness: torch.Tensor) -> float | None:
+    """The median distance (m) these nearness values stand for; None for none."""
+    return float((1.0 - nearness.float().clamp(max=1.0)).median()) * HAZARD_AHEAD_M if len(nearness) else None
 
 
 def _group(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]]:
-    """hazard_detection of these rows, with how many frames each share is of, and the shares
-    seen near and wrongly at each of THRESHOLDS."""
+    """hazard_detection of these rows, with how many frames each share is of, the shares seen
+    near and wrongly at each of THRESHOLDS, how far the near ones seen are read (`read_m`, the
+    median, beside their true `true_m`), and the same for the frames with one within CLOSE_M
+    (`close_frames`, `seen_close`, `read_close_m`, `true_close_m`)."""
     found = hazard_detection(pred, target)
     near = target >= 1.0 - NEAR_M / HAZARD_AHEAD_M
+    close = target >= 1.0 - CLOSE_M / HAZARD_AHEAD_M
     none = target <= 0.0
+    seen = pred >= SEEN_NEARNESS
 
     def share(k: int, rows: torch.Tensor, threshold: float) -> float | None:
         return float((pred[rows[:, k], k] >= threshold).float().mean()) if rows[:, k].any() else None
 
-    return {kind: {**found[kind], "near_frames": int(near[:, k].sum()), "none_frames": int(none[:, k].sum()),
-                   "at": {f"{t:g}": {"seen_near": share(k, near, t), "seen_none": share(k, none, t)}
-                          for t in THRESHOLDS}}
-            for k, kind in enumerate(found)}
+    def read(k: int, rows: torch.Tensor) -> dict[str, float | None]:
+        both = rows[:, k] & seen[:, k]
+        return {"read": _median_m(pred[both, k]), "true": _median_m(target[both, k])}
+
+    groups = {}
+    for k, kind in enumerate(found):
+        far, by_close = read(k, near), read(k, close)
+        groups[kind] = {**found[kind], "near_frames": int(near[:, k].sum()), "none_frames": int(none[:, k].sum()),
+                        "at": {f"{t:g}": {"seen_near": share(k, near, t), "seen_none": share(k, none, t)}
+                               for t in THRESHOLDS},
+                        "read_m": far["read"], "true_m": far["true"], "close_frames": int(close[:, k].sum()),
+                        "seen_close": share(k, close, SEEN_NEARNESS), "read_close_m": by_close["read"],
+                        "true_close_m": by_close["true"]}
+    return groups
 
 
 def _stop_line(target: torch.Tensor, speed_mps: np.ndarray, green_m: np.ndarray) -> np.ndarray:
@@ -66,7 +88,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     """The hazard outputs of `checkpoint` on every `every`-th frame of the recordings in
     `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
     read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
-    HAZARD_AHEAD_M, the share read as one all the same), `auc`, and the frame counts; for all
+    HAZARD_AHEAD_M, the share read as one all the same), `auc`, the frame counts, and how far
+    the ones seen are read against how far they are, also within CLOSE_M apart (`_group`); for all
     frames ("all") and grouped by command, weather, density, "ego" (standing, or moving at
     MOVING_MPS or faster) and "stop line" (standing at a red line, at a green one, elsewhere:
     `_stop_line`). `second`: the second head's outputs (model.move_off_head; beside SC's, as the
@@ -128,6 +151,10 @@ def _percent(x: float | None) -> str:
     return "—" if x is None else f"{100 * x:.1f}"
 
 
+def _metres(read: float | None, true: float | None) -> str:
+    return "—" if read is None else f"{read:.1f} ({true:.1f})"
+
+
 def probe_table(result: dict[str, Any]) -> str:
     """The probe's figures as markdown: one table per kind, a row per group."""
     head = " (its second head)" if result.get("head") == "second" else ""
@@ -138,15 +165,18 @@ def probe_table(result: dict[str, Any]) -> str:
              f"{'' if result['every'] == 1 else ', one in ' + str(result['every'])})", ""]
     for kind in (k for k in KINDS if k in result["all"]):
         lines += [f"## {kind}", "",
-                  f"| group | frames with one within {NEAR_M:g} m | seen % | frames with none | seen wrongly % | AUC |",
-                  "|---|---|---|---|---|---|"]
+                  f"| group | frames with one within {NEAR_M:g} m | seen % | frames with none | seen wrongly % | AUC "
+                  f"| seen: read m (true) | within {CLOSE_M:g} m | seen % | seen: read m (true) |",
+                  "|---" * 10 + "|"]
         rows = [("all", result["all"])] + [(f"{name} {value}", group) for name, values in result["by"].items()
                                             for value, group in values.items()]
         for label, group in rows:
             g = group[kind]
             auc = "—" if g["auc"] is None else f"{g['auc']:.3f}"
             lines.append(f"| {label} | {g['near_frames']} | {_percent(g['seen_near'])} | {g['none_frames']} | "
-                         f"{_percent(g['seen_none'])} | {auc} |")
+                         f"{_percent(g['seen_none'])} | {auc} | {_metres(g['read_m'], g['true_m'])} | "
+                         f"{g['close_frames']} | {_percent(g['seen_close'])} | "
+                         f"{_metres(g['read_close_m'], g['true_close_m'])} |")
         at = result["all"][kind]["at"]
         lines += ["", "| all frames, nearness ≥ | " + " | ".join(at) + " |", "|---" * (len(at) + 1) + "|",
                   "| seen % | " + " | ".join(_percent(a["seen_near"]) for a in at.values()) + " |",

@@ -9,8 +9,8 @@ import torch
 
 from bid_model.checkpoint import load_model
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import MOVING_MPS
-from bid_model.probe import probe_hazards, probe_table
+from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
+from bid_model.probe import CLOSE_M, _group, probe_hazards, probe_table
 from bid_model.recordings import open_every_frame, open_recordings
 from bid_model.train import hazard_detection
 from bid_sim.cli import main as bid
@@ -64,10 +64,25 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
         for lower, higher in itertools.pairwise(got["at"].values()):
             for key in ("seen_near", "seen_none"):
                 assert higher[key] is None or higher[key] <= lower[key]
+        # How far the ones seen are read, and the close band apart: the same medians by hand.
+        for rows, count, seen_key, read_key, true_key in (
+                (target[:, k] >= 1 - NEAR_M / HAZARD_AHEAD_M, "near_frames", "seen_near", "read_m", "true_m"),
+                (target[:, k] >= 1 - CLOSE_M / HAZARD_AHEAD_M, "close_frames", "seen_close", "read_close_m",
+                 "true_close_m")):
+            assert got[count] == int(rows.sum())
+            both = rows & (pred[:, k] >= SEEN_NEARNESS)
+            if both.any():
+                assert got[read_key] == pytest.approx(float((1 - pred[both, k].clamp(max=1)).median()) * HAZARD_AHEAD_M)
+                assert got[true_key] == pytest.approx(float((1 - target[both, k]).median()) * HAZARD_AHEAD_M)
+                assert got[true_key] <= (NEAR_M if count == "near_frames" else CLOSE_M) + 1e-6
+            else:
+                assert got[read_key] is None and got[true_key] is None
+            assert got[seen_key] == (None if not rows.any() else pytest.approx(float(both.sum() / rows.sum())))
+        assert got["close_frames"] <= got["near_frames"]
         # Each grouping splits the frames: its groups' counts add up to all of them.
         for name, groups in result["by"].items():
-            assert sum(g[kind]["near_frames"] for g in groups.values()) == got["near_frames"], name
-            assert sum(g[kind]["none_frames"] for g in groups.values()) == got["none_frames"], name
+            for count in ("near_frames", "none_frames", "close_frames"):
+                assert sum(g[kind][count] for g in groups.values()) == got[count], name
     assert set(result["by"]["weather"]) == {"ClearNoon", "HardRainNoon"}
     assert set(result["by"]["command"]) == {COMMAND_NAMES[it["command"]] for it in items}
     # Standing or moving: split at MOVING_MPS of the recorded speed (the episodes hold both).
@@ -82,6 +97,7 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
     table = probe_table(result)
     assert "## pedestrian" in table and "| weather HardRainNoon |" in table
     assert "| all frames, nearness ≥ | 0.2 | 0.3 | 0.4 | 0.5 | 0.6 |" in table
+    assert f"| seen: read m (true) | within {CLOSE_M:g} m | seen % | seen: read m (true) |" in table
 
 
 def test_bid_probe_prints_and_writes_the_tables_and_refuses_bad_input(recorded, hazard_run, tmp_path, capsys,
@@ -133,3 +149,24 @@ def test_probe_second_head_reads_the_second_head(recorded, tmp_path, one_thread,
     assert "bumper_m" not in probe_hazards(tmp_path / "two.pt", recorded, every=9)
     with pytest.raises(BidError, match="no second head to probe"):
         probe_hazards(shipped, recorded, every=9, second=True)
+
+
+def test_probe_reads_how_far_the_seen_ones_are_and_the_close_ones_apart():
+    def nearness(metres):
+        return 0.0 if metres is None else 1.0 - metres / HAZARD_AHEAD_M
+
+    # Pedestrians at 2, 3, 3.5 and 8 m and none; the head reads 5, 6, nothing, 9 m and nothing.
+    true_m, read_m = (2.0, 3.0, 3.5, 8.0, None), (5.0, 6.0, None, 9.0, None)
+    target = torch.tensor([[nearness(t), 0.0, 0.0] for t in true_m])
+    pred = torch.tensor([[nearness(r), 0.0, 0.0] for r in read_m])
+    got = _group(pred, target)["pedestrian"]
+    assert (got["near_frames"], got["close_frames"], got["none_frames"]) == (4, 3, 1)
+    assert got["seen_near"] == pytest.approx(3 / 4) and got["seen_close"] == pytest.approx(2 / 3)
+    # Medians of the seen ones (torch's: the lower middle of an even count).
+    assert got["read_m"] == pytest.approx(6.0) and got["true_m"] == pytest.approx(3.0)
+    assert got["read_close_m"] == pytest.approx(5.0) and got["true_close_m"] == pytest.approx(2.0)
+    vehicle = _group(pred, target)["vehicle"]
+    assert vehicle["close_frames"] == 0 and vehicle["seen_close"] is None and vehicle["read_close_m"] is None
+    table = probe_table({"checkpoint": "c.pt", "folder": "d", "towns": ["Town02"], "recordings": 1, "frames": 5,
+                         "every": 1, "all": _group(pred, target), "by": {}})
+    assert "| all | 4 | 75.0 | 1 | 0.0 | 0.875 | 6.0 (3.0) | 3 | 66.7 | 5.0 (2.0) |" in table
