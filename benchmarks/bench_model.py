@@ -25,7 +25,7 @@ from bid_model.model import BID, compile_each_area, grid_hw
 
 
 def _inputs(model: BID, batch: int, device: torch.device) -> tuple[torch.Tensor, ...]:
-    h, w = model.config.frame_hw
+    h, w = model.config.input_hw
     g = torch.Generator().manual_seed(0)
     frame = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)
     prev = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)

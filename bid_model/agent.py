@@ -446,7 +446,7 @@ class BIDAgent:
         self._start_left_m = 0.0  # metres of the start still capped
         if lesions:
             self.model.set_lesions(dict(lesions))
-        self.hw = tuple(self.config.model.frame_hw)
+        self.hw = self.config.model.input_hw
         self.gradcam_area = gradcam_area
         self._prev: torch.Tensor | None = None
         self._inputs: tuple | None = None

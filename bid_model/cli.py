@@ -100,6 +100,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard-sc, SC reads frame t alone (its change since t-1 zeroed): the "
                         "change is mostly the ego's own motion, from which SC learnt that a moving car "
                         "has nothing in its path; --init from a checkpoint with SC keeps its weights")
+    p.add_argument("--sc-scale", type=int, default=None, metavar="N",
+                   help="with --hazard-sc, SC reads the frames N times as fine as the cortex (2: 128x384 "
+                        "beside small's 64x192; the cortex reads them area-averaged down, as before); "
+                        "--init from another scale starts SC afresh and keeps every other weight")
     p.add_argument("--hazard-speedless", action="store_true", default=None,
                    help="with --hazard and a speed input, the hazard head reads MPC's tokens merged without "
                         "the speed token (standing, the head with it read a car ahead in an empty street); "

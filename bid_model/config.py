@@ -26,8 +26,9 @@ VARIANTS: dict[str, dict[str, bool]] = {
 # The model fields a variant sets: a checkpoint of one variant can start another (`--init`).
 VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
+# (sc_scale: SC and the crossing map start afresh at their new resolution.)
 INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc",
-                               "sc_presence", "hazard_crossing", "move_off_head", "head_presence"}
+                               "sc_presence", "hazard_crossing", "move_off_head", "head_presence", "sc_scale"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
@@ -102,6 +103,11 @@ class ModelConfig:
     # A fourth hazard output from a second SC map of its own (BID.hazard_crossing): how near the
     # next crossing on the path with a pedestrian on it is (bid_model.hazards.crossing_distances).
     hazard_crossing: bool = False
+    # SC (and the crossing map) read the frames at sc_scale times the cortex's resolution: the
+    # network's input is frame_hw × sc_scale (input_hw) and the cortex reads it area-averaged down
+    # to frame_hw, which is what it read before up to rounding (an area resize by a whole factor
+    # is the average of the finer one's cells). At 64×192 a person 10 m off is 3 pixels wide.
+    sc_scale: int = 1
     # The hazard head reads MPC's tokens merged a second time without the speed token, so that it
     # cannot read "standing, so something ahead": with the speed, the shipped head read a vehicle
     # 7.5 m ahead of a standing ego in an empty street (at 5 m/s: none), which kept move-off
@@ -141,6 +147,10 @@ class ModelConfig:
             raise ValueError("sc_presence is a part of SC: it needs hazard_sc")
         if self.sc_still and not self.hazard_sc:
             raise ValueError("sc_still is how SC reads: it needs hazard_sc")
+        if not (isinstance(self.sc_scale, int) and 1 <= self.sc_scale <= 4):
+            raise ValueError(f"sc_scale is a whole factor, 1 to 4, got {self.sc_scale!r}")
+        if self.sc_scale > 1 and not self.hazard_sc:
+            raise ValueError("sc_scale is SC's resolution: it needs hazard_sc")
         if self.hazard_crossing and not (self.hazard_sc and self.hazard_light):
             raise ValueError("hazard_crossing is the fourth hazard output, beside SC: it needs hazard_sc and hazard_light")
         if self.hazard_speedless and not (self.hazard and self.speed_input):
@@ -161,6 +171,11 @@ class ModelConfig:
     def width(self) -> int:
         """Width of the decision network (= the ventral output width)."""
         return self.widths[3]
+
+    @property
+    def input_hw(self) -> tuple[int, int]:
+        """(rows, columns) of the frames the network takes: frame_hw, SC's sc_scale times finer."""
+        return self.frame_hw[0] * self.sc_scale, self.frame_hw[1] * self.sc_scale
 
 
 @dataclass(frozen=True)

@@ -166,11 +166,11 @@ class BID(nn.Module):
         # With config.head_presence it says also whether a pedestrian is in the path (PresenceHazardHead).
         self.hazard_head = self._new_hazard_head(c.head_presence) if c.hazard else None
         # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
-        self.hazard_sc = (SC(c.frame_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
+        self.hazard_sc = (SC(c.input_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
                           if c.hazard_sc else None)
         # With config.hazard_crossing a second SC map of its own, one kind: how near the next crossing
         # on the path with a pedestrian on it is (the fourth hazard output; warm_start_crossing).
-        self.hazard_crossing = SC(c.frame_hw, c.n_commands, 1) if c.hazard_crossing else None
+        self.hazard_crossing = SC(c.input_hw, c.n_commands, 1) if c.hazard_crossing else None
         # With config.move_off_head a second hazard head, alike, reading MPC without the speed token
         # (with config.move_off_speed with it).
         self.hazard_move_off = self._new_hazard_head() if c.move_off_head else None
@@ -263,7 +263,7 @@ class BID(nn.Module):
                      command_onehot: torch.Tensor, speed_mps: torch.Tensor | None) -> None:
         """Raise BidError naming the problem if the inputs do not fit this model."""
         c = self.config
-        hw = tuple(c.frame_hw)
+        hw = c.input_hw
         for name, x in (("frame_t", frame_t), ("frame_prev", frame_prev)):
             if x.ndim != 4 or x.shape[1] != 3 or tuple(x.shape[2:]) != hw:
                 raise BidError(f"{name} has shape {tuple(x.shape)} but the {c.preset!r} preset "
@@ -291,11 +291,16 @@ class BID(nn.Module):
         self.check_inputs(frame_t, frame_prev, command_onehot, speed_mps)
         c, b = self.config, frame_t.shape[0]
         feats: dict[str, torch.Tensor] = {}
+        seen_t, seen_prev = self._normalise(frame_t), self._normalise(frame_prev)
+        if c.sc_scale > 1:  # the cortex reads the frames SC reads, area-averaged down to frame_hw
+            cortex_t, cortex_prev = (nn.functional.avg_pool2d(x, c.sc_scale) for x in (seen_t, seen_prev))
+        else:
+            cortex_t, cortex_prev = seen_t, seen_prev
         if c.dorsal:  # one V1 pass over both frames
-            v1_both = self._area("V1", self._normalise(torch.cat([frame_t, frame_prev])))
+            v1_both = self._area("V1", torch.cat([cortex_t, cortex_prev]))
             feats["V1"], v1_prev = v1_both.split(b)
         else:
-            feats["V1"] = self._area("V1", self._normalise(frame_t))
+            feats["V1"] = self._area("V1", cortex_t)
         feats["V2"] = self._area("V2", feats["V1"])
         feats["V4"] = self._area("V4", feats["V2"])
         feats["IT"] = self._area("IT", feats["V4"])
@@ -316,12 +321,9 @@ class BID(nn.Module):
         if c.hazard_speedless or (c.move_off_head and not c.move_off_speed):  # for a hazard head alone
             feats["MPC_speedless"] = self._speedless_mpc({k: v for k, v in streams.items() if k != "speed"})
         if self.hazard_sc is not None:
-            seen = self._normalise(frame_t)
-            feats["SC"] = self.hazard_sc(seen, seen if self.config.sc_still else self._normalise(frame_prev),
-                                         command_onehot.float())
+            feats["SC"] = self.hazard_sc(seen_t, seen_t if c.sc_still else seen_prev, command_onehot.float())
         if self.hazard_crossing is not None:
-            feats["crossing"] = self.hazard_crossing(self._normalise(frame_t), self._normalise(frame_prev),
-                                                     command_onehot.float())
+            feats["crossing"] = self.hazard_crossing(seen_t, seen_prev, command_onehot.float())
         if self.training:
             self.mean_batches += 1
         return feats

@@ -105,7 +105,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     if second and not config.model.move_off_head:
         raise BidError(f"{checkpoint} has no second head to probe (bid train --move-off-head); drop --second-head")
     bumper_m = config.train.second_bumper_m if second else 0.0
-    data, facts = open_every_frame(folder, tuple(config.model.frame_hw), crossing=config.model.hazard_crossing,
+    data, facts = open_every_frame(folder, config.model.input_hw, crossing=config.model.hazard_crossing,
                                    bumper_m=bumper_m)
     rows = np.arange(0, len(data), every)
     preds, targets, commands, episodes, speeds, greens = [], [], [], [], [], []

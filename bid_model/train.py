@@ -416,7 +416,7 @@ def noisy_speed(speed_mps: torch.Tensor, sigma: float) -> torch.Tensor:
 def open_data(config: RunConfig, data: Path | None, synthetic: bool
               ) -> tuple[Dataset, Dataset, dict[str, Any]]:
     """(train, validation, description): generated data, or the recordings in `data`."""
-    tc, hw, ahead = config.train, config.model.frame_hw, forecast_steps(config)
+    tc, hw, ahead = config.train, config.model.input_hw, forecast_steps(config)
     if synthetic:
         if tc.lambda_hazard > 0:
             raise BidError("--hazard learns from recordings (their /scene); drop it, or train on --data")
@@ -948,7 +948,7 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
     dev = pick_device(device, dist)
     train_set, val_set, description = open_data(config, data, synthetic)
     first = train_set[0]
-    check_sample(first, config.model.frame_hw)
+    check_sample(first, config.model.input_hw)
     if tc.lambda_forecast > 0 and tuple(getattr(first.get("future_speed"), "shape", ())) != (len(config.model.forecast_s),):
         raise BidError(f"--forecast needs dataset items with 'future_speed', {len(config.model.forecast_s)} speeds "
                        "ahead (see the contract in bid_model/data.py)")
@@ -986,6 +986,8 @@ def train(out: Path, config: RunConfig | None = None, *, data: Path | None = Non
         state = start_from["model"]
         if "frame_hw" in diff:
             state = resize_grid_tokens(state, tuple(theirs.frame_hw), model)
+        if "sc_scale" in diff:  # SC and the crossing map start afresh at their new resolution
+            state = {k: v for k, v in state.items() if not k.startswith(("hazard_sc.", "hazard_crossing."))}
         fresh = load_shared_weights(model, state)
         fresh = warm_start_move_off(model, state, warm_start_crossing(model, state, fresh))
         fresh = warm_start_presence(model, state, fresh)
@@ -1139,7 +1141,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-green-weight": args.hazard_green_weight,
              "--hazard-vehicle-moving-weight": args.hazard_vehicle_moving_weight,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
-             "--sc-presence": args.sc_presence, "--sc-still": args.sc_still,
+             "--sc-presence": args.sc_presence, "--sc-still": args.sc_still, "--sc-scale": args.sc_scale,
              "--head-presence": args.head_presence,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
              "--move-off-speed": args.move_off_speed, "--second-bumper": args.second_bumper,
@@ -1266,6 +1268,13 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
         if not model.hazard_sc:
             raise BidError("--sc-still is how SC reads: add --hazard-sc (and --hazard WEIGHT)")
         model = dataclasses.replace(model, sc_still=True)
+    if args.sc_scale is not None:
+        if not model.hazard_sc:
+            raise BidError("--sc-scale is SC's resolution: add --hazard-sc (and --hazard WEIGHT)")
+        if not 1 <= args.sc_scale <= 4:
+            raise BidError(f"--sc-scale is a whole factor, 1 to 4 (2: SC reads frames twice as fine as "
+                           f"the cortex); got {args.sc_scale}")
+        model = dataclasses.replace(model, sc_scale=args.sc_scale)
     if args.hazard_crossing:
         if not model.hazard_sc:
             raise BidError("--hazard-crossing is a second SC map beside SC: add --hazard-sc (and --hazard WEIGHT)")

@@ -291,3 +291,30 @@ print(counters["stats"]["unique_graphs"], sorted(counters["unimplemented"]))
     assert gave_up.strip() == "[]", gave_up  # no "recompile limit exceeded"
     # Each area once per (batch size, mode) at most: 4 combinations of the tiny model's areas.
     assert 0 < int(graphs) <= 4 * len(tiny_model().areas)
+
+
+def test_sc_scale_gives_sc_finer_frames_and_the_cortex_the_same_ones_averaged_down():
+    """sc_scale 2: the network takes frames twice as fine; SC reads them so (a grid twice as
+    fine), and the cortex reads them area-averaged down: a frame whose every pixel is a 2×2 block
+    drives it exactly as the coarse frame drives the same cortex at sc_scale 1."""
+    coarse_cfg = dataclasses.replace(tiny().model, hazard=True, hazard_light=True, hazard_sc=True)
+    fine_cfg = dataclasses.replace(coarse_cfg, sc_scale=2)
+    assert fine_cfg.input_hw == (64, 192) and coarse_cfg.input_hw == coarse_cfg.frame_hw
+    torch.manual_seed(0)
+    coarse, fine = BID(coarse_cfg).eval(), BID(fine_cfg).eval()
+    assert fine.hazard_sc.position.shape[2:] == (8, 24) and coarse.hazard_sc.position.shape[2:] == (4, 12)
+    fine.load_state_dict({k: v for k, v in coarse.state_dict().items() if not k.startswith("hazard_sc.")},
+                         strict=False)
+    frame, prev = (torch.randint(0, 256, (2, 3, 32, 96), dtype=torch.uint8) for _ in range(2))
+    cmd, speed = torch.eye(6)[[1, 4]], None
+    blocks = [x.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3) for x in (frame, prev)]
+    with torch.no_grad():
+        want = coarse(frame, prev, cmd, speed, hazard=True, hazard_apart=True)
+        got = fine(*blocks, cmd, speed, hazard=True, hazard_apart=True)
+    assert torch.allclose(got[0], want[0], atol=1e-6)  # steer, accel
+    assert torch.allclose(got[1][:, :3], want[1][:, :3], atol=1e-6)  # the head's own outputs
+    with pytest.raises(BidError, match=r"expects \(batch, 3, 64, 192\)"):
+        fine(frame, prev, cmd)
+    for bad, why in (({"sc_scale": 2, "hazard_sc": False}, "needs hazard_sc"), ({"sc_scale": 0}, "whole factor")):
+        with pytest.raises(ValueError, match=why):
+            dataclasses.replace(coarse_cfg, **bad)

@@ -16,6 +16,7 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
+from bid_model.agent import BIDAgent
 from bid_model.augment import photometric
 from bid_model.checkpoint import average_checkpoints, load_checkpoint, load_model, save_checkpoint
 from bid_model.config import RunConfig, model_config_from_dict, tiny, with_variant
@@ -1379,3 +1380,28 @@ def test_mirror_flips_the_world_left_to_right_with_its_commands_and_steering():
     f, _, c, t = mirror(frame, prev, command, target, 0.5)
     flipped = [bool(torch.equal(f[i], frame[i].flip(-1))) for i in range(3)]  # steer ≠ 0
     assert flipped == [bool(t[i, 0] == -target[i, 0]) for i in range(3)]
+
+
+def test_sc_scale_starts_sc_afresh_on_finer_frames_and_keeps_every_other_weight(recorded, tmp_path, capsys):
+    """--sc-scale 2 --init from a run whose SC read the cortex's frames: the recordings are read
+    twice as fine, SC starts afresh on them and alone moves (--train-only SC), every other weight
+    is the start's; the agent feeds the run frames of that size. Without SC, or out of range, it
+    is refused in one line."""
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet",
+            "--hazard", "1", "--hazard-sc"]
+    assert bid([*base, "--out", str(tmp_path / "sc")]) == 0
+    assert bid([*base, "--init", str(tmp_path / "sc" / "last.pt"), "--sc-scale", "2", "--train-only", "SC",
+                "--out", str(tmp_path / "fine")]) == 0
+    start, fine = load_checkpoint(tmp_path / "sc" / "last.pt"), load_checkpoint(tmp_path / "fine" / "last.pt")
+    assert fine["config"]["model"]["sc_scale"] == 2
+    assert all(torch.equal(v, fine["model"][k]) for k, v in start["model"].items() if not k.startswith("hazard_sc."))
+    assert fine["model"]["hazard_sc.position"].shape[2:] == (8, 24)  # tiny's 32×96 twice as fine, over 8
+    assert set(fine["init"]["fresh"]) == {k for k in fine["model"] if k.startswith("hazard_sc.")}  # all of SC
+    agent = BIDAgent(tmp_path / "fine" / "last.pt")
+    assert agent.hw == (64, 192)
+    for flags, why in ((["--hazard", "1", "--sc-scale", "2"], "add --hazard-sc"),
+                       ([*base[-3:], "--sc-scale", "5"], "whole factor, 1 to 4")):
+        assert bid(["train", "--preset", "tiny", "--data", str(recorded), "--quiet", *flags,
+                    "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert why in err and "\n" not in err
