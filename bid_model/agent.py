@@ -18,7 +18,7 @@ import torch
 from bid_model.checkpoint import load_model
 from bid_model.config import PATH_KINDS
 from bid_model.data import command_one_hot, prepare_frame
-from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, SEEN_NEARNESS
+from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, SEEN_NEARNESS, nearness_m
 from bid_sim.agents import EpisodeInfo, Observation
 from bid_sim.ego import DT_S, Control, EgoParams
 from bid_sim.errors import BidError
@@ -91,7 +91,7 @@ def pedestrian_brake(nearness: float, speed_mps: float, hold_m: float = HOLD_M) 
     holds)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
-    dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+    dist_m = nearness_m(nearness)
     if speed_mps < START_MPS and dist_m < hold_m:
         return 1.0
     return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
@@ -108,7 +108,7 @@ def light_brake(nearness: float, speed_mps: float, short_m: float = LIGHT_SHORT_
     within HOLD_M left 6 of the first 27 episodes standing ("blocked"; docs/experiments.md)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
-    return _binding(_stop_short((1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M, speed_mps, short_m))
+    return _binding(_stop_short(nearness_m(nearness), speed_mps, short_m))
 
 
 def crossing_brake(nearness: float, speed_mps: float) -> float:
@@ -118,7 +118,7 @@ def crossing_brake(nearness: float, speed_mps: float) -> float:
     move the ego off into people still on the stripes."""
     if nearness < SEEN_NEARNESS:
         return 0.0
-    dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+    dist_m = nearness_m(nearness)
     if speed_mps < START_MPS and dist_m < CROSSING_HOLD_M:
         return 1.0
     return _binding(_stop_short(dist_m, speed_mps, CROSSING_SHORT_M))
@@ -134,7 +134,7 @@ def vehicle_brake(nearness: float, speed_mps: float, hold: bool = False) -> floa
     with one within VEHICLE_HOLD_M."""
     if nearness < SEEN_NEARNESS:
         return 0.0
-    dist_m = (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+    dist_m = nearness_m(nearness)
     if hold and speed_mps < START_MPS and dist_m < VEHICLE_HOLD_M:
         return 1.0
     if dist_m > speed_mps * HEADWAY_S + MIN_GAP_M:
@@ -173,7 +173,7 @@ class PathMemory:
     def update(self, near: tuple[float, ...], speed_mps: float) -> tuple[float, ...]:
         out = list(near)
         for k in self.kinds:
-            seen_m = (1.0 - min(near[k], 1.0)) * HAZARD_AHEAD_M if near[k] >= SEEN_NEARNESS else None
+            seen_m = nearness_m(near[k]) if near[k] >= SEEN_NEARNESS else None
             if seen_m is not None and seen_m <= self.remember_m and speed_mps >= self.learn_mps:
                 self._dist_m[k] = self._seen_m[k] = seen_m
                 self._unseen[k] = 0

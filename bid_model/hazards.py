@@ -72,6 +72,12 @@ BUMPER_MAX_CURVATURE = 0.25  # 1/m: a tighter turn than Town02's (radius 4 m) is
 BUMPER_MOVING_MPS = 0.5  # slower, the yaw rate over the speed says little: the arc is straight on
 
 
+def nearness_m(nearness: float) -> float:
+    """The distance (m) along the path that a hazard nearness (1 − distance / HAZARD_AHEAD_M, as
+    recordings.hazard_nearness gives it) stands for; a reading above 1 is touching."""
+    return (1.0 - min(nearness, 1.0)) * HAZARD_AHEAD_M
+
+
 def _path_points(xy: np.ndarray, s: np.ndarray, s0: float) -> np.ndarray:
     """(Q, 2) points of the trajectory (xy at arc lengths s, strictly increasing) from s0 on."""
     q = s0 + np.arange(0.0, HAZARD_AHEAD_M + PATH_STEP_M / 2, PATH_STEP_M)
