@@ -239,7 +239,7 @@ def _probe(args: argparse.Namespace) -> int:
     from bid_model.probe import probe_hazards, probe_table, write_probe
 
     result = probe_hazards(args.checkpoint, args.data, every=args.every, threads=args.threads,
-                           second=args.second_head)
+                           second=args.second_head, source=args.source)
     print(probe_table(result))
     if args.out:
         out = write_probe(result, args.out)
@@ -307,5 +307,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     pr.add_argument("--second-head", action="store_true",
                     help="probe the second head (bid train --move-off-head), not the first")
+    pr.add_argument("--source", choices=("merged", "head", "SC"), default="merged",
+                    help="with SC (--hazard-sc): probe the reading driving uses (merged, the default), the "
+                         "head's alone or SC's alone (with --sc-presence also its logits at lower thresholds)")
     pr.add_argument("--out", default=None, metavar="PATH", help="also write PATH.json and PATH.md")
     pr.set_defaults(func=_probe)

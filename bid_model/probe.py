@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from bid_model.checkpoint import load_model
-from bid_model.config import KINDS
+from bid_model.config import KINDS, PATH_KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
 from bid_model.recordings import open_every_frame
-from bid_model.train import hazard_detection, second_targets
+from bid_model.train import hazard_detection, ranking_auc, second_targets
 from bid_sim.errors import BidError
 
 # Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
@@ -34,6 +34,14 @@ THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6)
 # The close band read apart: the closed loop's pedestrian contacts were seen at 5-8 m and then
 # lost or read far in the last metres (docs/experiments.md), which the share within NEAR_M hides.
 CLOSE_M = 4.0
+# What is probed (`bid probe --source`): the hazard reading the brakes use (with SC, the larger
+# of the head's and SC's), the head's alone, or SC's alone; the merged reading hides which of
+# the two sees and which reads wrongly.
+SOURCES = ("merged", "head", "SC")
+# SC's presence logits (--sc-presence) are also read at these thresholds: one trained at a
+# positive weight w says yes where it judges the odds above 1 / (1 + w); a lower threshold is
+# what a larger w would have said, were the logit calibrated.
+LOGIT_THRESHOLDS = (0.0, -0.5, -1.0, -2.0)
 
 
 def _median_m(nearness: torch.Tensor) -> float | None:
@@ -83,8 +91,25 @@ def _stop_line(target: torch.Tensor, speed_mps: np.ndarray, green_m: np.ndarray)
                     np.where(standing & (green_m <= AT_LINE_M), "standing at a green line", "elsewhere"))
 
 
+def _logits(logit: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]]:
+    """Per kind of SC's presence logits (B, K) against the nearness targets: their `auc` (frames
+    with one in the path within NEAR_M against those with none) and, at each of
+    LOGIT_THRESHOLDS, the shares of those two kinds of frame the logit says yes to."""
+    near = target >= 1.0 - NEAR_M / HAZARD_AHEAD_M
+    none = target <= 0.0
+    out = {}
+    for k, kind in enumerate(KINDS[:logit.shape[1]]):
+        yes, no = logit[near[:, k], k].numpy(), logit[none[:, k], k].numpy()
+        out[kind] = {"auc": ranking_auc(yes, no) if len(yes) and len(no) else None,
+                     "at": {f"{t:g}": {"seen_near": float((yes > t).mean()) if len(yes) else None,
+                                       "seen_none": float((no > t).mean()) if len(no) else None}
+                            for t in LOGIT_THRESHOLDS}}
+    return out
+
+
 def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,
-                  batch_size: int = 64, threads: int | None = None, second: bool = False) -> dict[str, Any]:
+                  batch_size: int = 64, threads: int | None = None, second: bool = False,
+                  source: str = "merged") -> dict[str, Any]:
     """The hazard outputs of `checkpoint` on every `every`-th frame of the recordings in
     `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
     read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
@@ -94,9 +119,17 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     MOVING_MPS or faster) and "stop line" (standing at a red line, at a green one, elsewhere:
     `_stop_line`). `second`: the second head's outputs (model.move_off_head; beside SC's, as the
     first head's are) in place of the first head's, against its own targets (with `bid train
-    --second-bumper` its vehicle the nearer of the path's and the one ahead of the bumper)."""
+    --second-bumper` its vehicle the nearer of the path's and the one ahead of the bumper).
+    `source` (SOURCES): the reading driving uses ("merged"), or with SC the head's alone (its
+    pedestrian gated by its presence logit, as driving reads it) or SC's alone (gated by its
+    logits with --sc-presence; then also `logits`, _logits of SC's logits over all frames)."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
+    if source not in SOURCES:
+        raise BidError(f"source is one of {', '.join(SOURCES)}; got {source!r}")
+    apart = source != "merged"
+    if apart and second:
+        raise BidError("--source reads the first head or SC apart, --second-head the second head: drop one")
     if threads:
         torch.set_num_threads(threads)
     model, config = load_model(checkpoint)
@@ -104,11 +137,13 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         raise BidError(f"{checkpoint} has no hazard head to probe; train one with --hazard")
     if second and not config.model.move_off_head:
         raise BidError(f"{checkpoint} has no second head to probe (bid train --move-off-head); drop --second-head")
+    if apart and not config.model.hazard_sc:
+        raise BidError(f"{checkpoint} has no SC (--hazard-sc): its reading is its head's alone; drop --source")
     bumper_m = config.train.second_bumper_m if second else 0.0
     data, facts = open_every_frame(folder, config.model.input_hw, crossing=config.model.hazard_crossing,
                                    bumper_m=bumper_m)
     rows = np.arange(0, len(data), every)
-    preds, targets, commands, episodes, speeds, greens = [], [], [], [], [], []
+    preds, logits, targets, commands, episodes, speeds, greens = [], [], [], [], [], [], []
     with torch.inference_mode():
         for start in range(0, len(rows), batch_size):
             items = [data[int(i)] for i in rows[start:start + batch_size]]
@@ -116,8 +151,17 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             speed = (torch.tensor([it["speed_mps"] for it in items], dtype=torch.float32)
                      if config.model.speed_input else None)
             out = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
-                        command_one_hot(command), speed, hazard=True, **({"move_off": True} if second else {}))
-            preds.append(out[-1].float())
+                        command_one_hot(command), speed, hazard=True, hazard_apart=apart,
+                        **({"move_off": True} if second else {}))
+            pred = out[-1].float()
+            if source == "head":
+                pred = model.gate_head(pred[:, :model.head_columns()])
+            elif source == "SC":
+                if config.model.sc_presence:
+                    n, k = model.head_columns(), len(PATH_KINDS)
+                    logits.append(pred[:, n + k:n + 2 * k])
+                pred = model.sc_near(pred)
+            preds.append(pred)
             near = torch.stack([it["hazard"] for it in items])
             if bumper_m > 0:
                 near = second_targets({"vehicle_bumper": torch.tensor([it["vehicle_bumper"] for it in items])}, near)
@@ -126,13 +170,14 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             episodes += [it["episode"] for it in items]
             speeds += [float(it["speed_mps"]) for it in items]
             greens += [float(it.get("green_m", HAZARD_AHEAD_M)) for it in items]
-    pred, target = torch.cat(preds), torch.cat(targets)
+    pred, every_target = torch.cat(preds), torch.cat(targets)
+    target = every_target[:, :pred.shape[1]]
     groups: dict[str, np.ndarray] = {
         "command": np.array([COMMAND_NAMES[c] for c in commands]),
         "weather": np.array([facts[e].get("weather", "?") for e in episodes]),
         "density": np.array([facts[e].get("density", "?") for e in episodes]),
         "ego": np.where(np.array(speeds) >= MOVING_MPS, "moving", "standing"),
-        "stop line": _stop_line(target, np.array(speeds), np.array(greens)),
+        "stop line": _stop_line(every_target, np.array(speeds), np.array(greens)),
     }
     by: dict[str, dict[str, Any]] = {}
     for name, labels in groups.items():
@@ -142,6 +187,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             by[name][value] = _group(pred[rows_of], target[rows_of])
     towns = sorted({f.get("town", "?") for f in facts})
     return {"checkpoint": str(checkpoint), **({"head": "second"} if second else {}),
+            **({"source": source} if apart else {}),
+            **({"logits": _logits(torch.cat(logits), target)} if logits else {}),
             **({"bumper_m": bumper_m} if bumper_m > 0 else {}),
             "folder": str(folder), "towns": towns, "recordings": len(facts),
             "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
@@ -157,7 +204,8 @@ def _metres(read: float | None, true: float | None) -> str:
 
 def probe_table(result: dict[str, Any]) -> str:
     """The probe's figures as markdown: one table per kind, a row per group."""
-    head = " (its second head)" if result.get("head") == "second" else ""
+    head = {"head": " (its head alone)", "SC": " (SC alone)"}.get(result.get("source"), "")
+    head += " (its second head)" if result.get("head") == "second" else ""
     if result.get("bumper_m"):
         head += f" (vehicles also within {result['bumper_m']:g} m ahead of the bumper)"
     lines = [f"# Hazard outputs of {result['checkpoint']}{head} on {result['folder']} "
@@ -181,6 +229,14 @@ def probe_table(result: dict[str, Any]) -> str:
         lines += ["", "| all frames, nearness ≥ | " + " | ".join(at) + " |", "|---" * (len(at) + 1) + "|",
                   "| seen % | " + " | ".join(_percent(a["seen_near"]) for a in at.values()) + " |",
                   "| seen wrongly % | " + " | ".join(_percent(a["seen_none"]) for a in at.values()) + " |", ""]
+        if kind in result.get("logits", {}):
+            logit = result["logits"][kind]
+            auc = "—" if logit["auc"] is None else f"{logit['auc']:.3f}"
+            lines += [f"| all frames, SC's logit (AUC {auc}) > | " + " | ".join(logit["at"]) + " |",
+                      "|---" * (len(logit["at"]) + 1) + "|",
+                      "| seen % | " + " | ".join(_percent(a["seen_near"]) for a in logit["at"].values()) + " |",
+                      "| seen wrongly % | " + " | ".join(_percent(a["seen_none"]) for a in logit["at"].values())
+                      + " |", ""]
     return "\n".join(lines)
 
 

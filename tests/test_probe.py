@@ -170,3 +170,59 @@ def test_probe_reads_how_far_the_seen_ones_are_and_the_close_ones_apart():
     table = probe_table({"checkpoint": "c.pt", "folder": "d", "towns": ["Town02"], "recordings": 1, "frames": 5,
                          "every": 1, "all": _group(pred, target), "by": {}})
     assert "| all | 4 | 75.0 | 1 | 0.0 | 0.875 | 6.0 (3.0) | 3 | 66.7 | 5.0 (2.0) |" in table
+
+
+def test_probe_source_reads_the_head_and_sc_apart(recorded, hazard_run, tmp_path, capsys, one_thread):
+    """--source head / SC: with SC, the head's reading and SC's alone, each as driving reads it
+    (gated by its presence logit), against the same targets; SC's logits also at lower
+    thresholds. The merged reading, the larger of the two, sees at least what either sees."""
+    from bid_model.train import ranking_auc
+
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
+    assert bid([*base, "--hazard", "1", "--hazard-sc", "--sc-presence", "--out", str(tmp_path / "pr")]) == 0
+    checkpoint = tmp_path / "pr" / "last.pt"
+    merged, head, sc = (probe_hazards(checkpoint, recorded, every=2, source=s) for s in ("merged", "head", "SC"))
+    assert "source" not in merged and "logits" not in merged and "logits" not in head
+    assert (head["source"], sc["source"]) == ("head", "SC")
+    assert set(head["all"]) == {"pedestrian", "vehicle", "red_light"} and set(sc["all"]) == {"pedestrian", "vehicle"}
+    # By hand: the model's apart columns, the head's and SC's readings out of them.
+    model, _ = load_model(checkpoint)
+    data, _ = open_every_frame(recorded, (32, 96))
+    items = [data[i] for i in range(0, len(data), 2)]
+    with torch.no_grad():
+        apart = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
+                      command_one_hot([it["command"] for it in items]), hazard=True, hazard_apart=True)[1]
+    target = torch.stack([it["hazard"] for it in items])
+    for got, pred in ((head, model.gate_head(apart[:, :3])), (sc, model.sc_near(apart))):
+        want = hazard_detection(pred, target[:, :pred.shape[1]])
+        for kind in want:
+            for key in ("seen_near", "seen_none", "auc"):
+                assert got["all"][kind][key] == (None if want[kind][key] is None else pytest.approx(want[kind][key]))
+        assert set(got["by"]["stop line"]) == set(merged["by"]["stop line"])
+    for kind in ("pedestrian", "vehicle"):
+        for key in ("seen_near", "seen_none"):
+            if merged["all"][kind][key] is not None:
+                assert merged["all"][kind][key] >= max(head["all"][kind][key], sc["all"][kind][key]) - 1e-9
+    near = target >= 1 - NEAR_M / HAZARD_AHEAD_M
+    for k, kind in enumerate(("pedestrian", "vehicle")):
+        logit = sc["logits"][kind]
+        yes, no = apart[near[:, k], 5 + k].numpy(), apart[target[:, k] <= 0, 5 + k].numpy()
+        assert logit["auc"] == (pytest.approx(ranking_auc(yes, no)) if len(yes) and len(no) else None)
+        # A lower threshold says yes at least as often; at 0 at least as often as the gated nearness is seen.
+        for lower, higher in itertools.pairwise(reversed(list(logit["at"].values()))):
+            for key in ("seen_near", "seen_none"):
+                assert lower[key] is None or higher[key] <= lower[key]
+        for key in ("seen_near", "seen_none"):
+            assert sc["all"][kind][key] is None or sc["all"][kind][key] <= logit["at"]["0"][key]
+    printed = probe_table(sc)
+    assert "(SC alone)" in printed and "## red_light" not in printed and "SC's logit (AUC" in printed
+    assert "(its head alone)" in probe_table(head)
+    # Refused: a model without SC, SC apart with the second head, an unknown source.
+    plain = str(hazard_run / "hz" / "last.pt")
+    for args, says in (([plain, "--source", "SC"], "has no SC"),
+                       ([str(checkpoint), "--source", "head", "--second-head"], "drop one")):
+        assert bid(["probe", "--checkpoint", args[0], "--data", str(recorded), *args[1:]]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    with pytest.raises(BidError, match="source is one of"):
+        probe_hazards(checkpoint, recorded, source="sc")
