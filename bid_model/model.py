@@ -382,12 +382,18 @@ class BID(nn.Module):
         near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
         return near if apart else self.merge_hazard(near)
 
+    def sc_columns(self, apart: torch.Tensor) -> torch.Tensor:
+        """SC's own columns out of forward_hazard(apart=True)'s (a model with SC): its (pedestrian,
+        vehicle) nearness, then with config.sc_presence their logits."""
+        n = self.head_columns()
+        return apart[:, n:n + len(PATH_KINDS) * (2 if self.config.sc_presence else 1)]
+
     def sc_near(self, apart: torch.Tensor) -> torch.Tensor:
         """(batch, 2): SC's own (pedestrian, vehicle) nearness out of forward_hazard(apart=True)'s
         columns (a model with SC); with config.sc_presence only where its logit says one is in the
         path, else 0."""
-        k, n = len(PATH_KINDS), self.head_columns()
-        sc = apart[:, n:n + k * (2 if self.config.sc_presence else 1)]
+        k = len(PATH_KINDS)
+        sc = self.sc_columns(apart)
         if self.config.sc_presence:
             sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
         return sc
@@ -398,7 +404,7 @@ class BID(nn.Module):
         the head's others, then the crossing map's; the head's pedestrian with config.head_presence
         only where it says she is in the path (gate_head)."""
         k, n = len(PATH_KINDS), self.head_columns()
-        crossing = apart[:, n + k * (2 if self.config.sc_presence else 1):]
+        crossing = apart[:, n + self.sc_columns(apart).shape[1]:]
         head = self.gate_head(apart[:, :n])
         return torch.cat([torch.maximum(head[:, :k], self.sc_near(apart)), head[:, k:], crossing], dim=1)
 

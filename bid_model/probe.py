@@ -158,8 +158,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
                 pred = model.gate_head(pred[:, :model.head_columns()])
             elif source == "SC":
                 if config.model.sc_presence:
-                    n, k = model.head_columns(), len(PATH_KINDS)
-                    logits.append(pred[:, n + k:n + 2 * k])
+                    logits.append(model.sc_columns(pred)[:, len(PATH_KINDS):])
                 pred = model.sc_near(pred)
             preds.append(pred)
             near = torch.stack([it["hazard"] for it in items])
