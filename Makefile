@@ -84,7 +84,7 @@ bench: $(STAMP)
 	$(BID) bench render
 	$(BID) bench record
 	$(PY) benchmarks/bench_reader.py
-	$(PY) benchmarks/bench_model.py
+	$(PY) benchmarks/bench_model.py --checkpoint checkpoints/bid_small.pt
 
 # The BID model, `small` preset, on the recordings of `make record`.
 train: $(STAMP)

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils.flop_counter import FlopCounterMode
 
+from bid_model.checkpoint import load_model
 from bid_model.config import preset
 from bid_model.data import command_one_hot
 from bid_model.losses import l1_loss
@@ -31,7 +32,7 @@ def _inputs(model: BID, batch: int, device: torch.device) -> tuple[torch.Tensor,
     prev = torch.randint(0, 256, (batch, 3, h, w), dtype=torch.uint8, generator=g)
     command = command_one_hot(torch.randint(1, 7, (batch,), generator=g))
     x = (frame, prev, command)
-    if model.config.speed_input:  # the small preset sees the measured speed
+    if model.config.speed_input or model.config.sc_fine:  # the small preset sees the speed; a fine SC is read by it
         x += (torch.rand(batch, generator=g) * 10.0,)
     return tuple(t.to(device) for t in x)
 
@@ -200,21 +201,23 @@ def gpu_figures(quick: bool, batches: list[int]) -> dict[str, object]:
     return out
 
 
-def latency_ms(name: str, iters: int) -> dict[str, float]:
-    """Inference on one frame pair, one CPU thread: median and best ms per frame."""
+def latency_ms(name: str, iters: int, checkpoint: str | None = None) -> dict[str, float]:
+    """Inference on one frame pair, one CPU thread: median and best ms per frame; with
+    `checkpoint` its model, as driving runs it (the hazard outputs too), not preset `name`'s."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         torch.manual_seed(0)
-        model = BID(preset(name).model).eval()
+        model = BID(preset(name).model).eval() if checkpoint is None else load_model(checkpoint)[0]
         x = _inputs(model, 1, torch.device("cpu"))
+        hazard = {"hazard": True} if checkpoint is not None and model.config.hazard else {}
         times = []
         with torch.inference_mode():
             for _ in range(5):
-                model(*x)
+                model(*x, **hazard)
             for _ in range(iters):
                 t0 = time.perf_counter()
-                model(*x)
+                model(*x, **hazard)
                 times.append((time.perf_counter() - t0) * 1e3)
     finally:
         torch.set_num_threads(threads)
@@ -226,6 +229,9 @@ def main() -> None:
     p.add_argument("--json", action="store_true", help="print one JSON dict")
     p.add_argument("--quick", action="store_true", help="fewer iterations (a smoke check)")
     p.add_argument("--gpu-only", action="store_true", help="only the GPU figures")
+    p.add_argument("--checkpoint", action="append", default=[], metavar="CKPT",
+                   help="also the inference latency of this checkpoint's model, hazard outputs "
+                        "included (repeatable; e.g. checkpoints/bid_small.pt)")
     p.add_argument("--gpu-batches", default="64,100,128,256",
                    help="batch sizes of the GPU sweep (default 64,100,128,256)")
     p.add_argument("--gpu-profile", action="store_true",
@@ -262,6 +268,8 @@ def main() -> None:
     lat = latency_ms("small", 20 if quick else 200)
     result["small_latency_ms_1core"] = round(lat["median"], 2)
     result["small_latency_ms_1core_best"] = round(lat["best"], 2)
+    for path in args.checkpoint:
+        result[f"latency_ms_1core {path}"] = round(latency_ms("small", 20 if quick else 200, path)["median"], 2)
     result["small_train_samples_per_s_cpu"] = round(
         train_samples_per_s("small", 32, 2 if quick else 4, cpu), 1)
     torch.set_num_threads(1)

@@ -16,9 +16,9 @@ import numpy as np
 import torch
 
 from bid_model.checkpoint import load_model
-from bid_model.config import PATH_KINDS
+from bid_model.config import MOVING_MPS, PATH_KINDS
 from bid_model.data import command_one_hot, prepare_frame
-from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, SEEN_NEARNESS, nearness_m
+from bid_model.hazards import HAZARD_AHEAD_M, SEEN_NEARNESS, nearness_m
 from bid_sim.agents import EpisodeInfo, Observation
 from bid_sim.ego import DT_S, Control, EgoParams
 from bid_sim.errors import BidError
@@ -483,7 +483,7 @@ class BIDAgent:
         frame = prepare_frame(obs.frame, self.hw)[None]
         prev = self._prev if self._prev is not None else frame  # frame t at an episode's start
         cmd = command_one_hot(int(obs.command))
-        speed = torch.tensor([float(obs.speed_mps)]) if self.config.model.speed_input else None
+        speed = torch.tensor([float(obs.speed_mps)])  # the input with speed_input; the merge's with sc_fine
         self._prev = frame
         self._inputs = (frame, prev, cmd, speed)
         if self._sc_configs is not None:
@@ -509,7 +509,7 @@ class BIDAgent:
                 accel = min(accel, -self.forecast_brake * need)
         if by_hazard:
             hazard = extra.pop(0)
-            merged = self.model.merge_hazard if self.move_off_sc else (lambda h: h)
+            merged = (lambda h: self.model.merge_hazard(h, speed)) if self.move_off_sc else (lambda h: h)
             near = clear_near = tuple(float(x) for x in merged(hazard)[0])
             k = len(PATH_KINDS)
             if second:

@@ -7,6 +7,7 @@ A checkpoint is a dict: `config` (RunConfig.to_dict), `model` (state dict), `opt
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -169,6 +170,41 @@ def average_checkpoints(paths: list[str | Path], out: str | Path,
     payload.update(model=state, history=[], best_val_loss=math.inf, git_hash=git_hash(),
                    init={"average": [{"path": str(p), "weight": w, "epoch": c.get("epoch"), "git_hash": c.get("git_hash")}
                                      for p, w, c in zip(paths, weights, ckpts, strict=True)]})
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out, payload)
+    return payload
+
+
+def graft_fine_sc(base_path: str | Path, donor_path: str | Path, out: str | Path) -> dict[str, Any]:
+    """Writes to `out` checkpoint `base_path` with a second SC (model config sc_fine): the SC of
+    `donor_path`, a checkpoint of the same network whose SC has presence logits (`bid train
+    --sc-presence`) and reads frames at its sc_scale, its weights as they are. Nothing is trained:
+    each SC keeps what it learnt, and the merge reads the fine one's pedestrian beside the first's
+    (BID.merge_hazard). Returns the checkpoint written; its `graft` names the sources."""
+    base, donor = load_checkpoint(base_path), load_checkpoint(donor_path)
+    mine, theirs = RunConfig.from_dict(base["config"]).model, RunConfig.from_dict(donor["config"]).model
+    if not mine.hazard_sc or mine.sc_fine:
+        raise BidError(f"{base_path} has {'a fine SC already' if mine.sc_fine else 'no SC (--hazard-sc)'}: "
+                       "graft onto a checkpoint with one SC")
+    if not (theirs.hazard_sc and theirs.sc_presence):
+        raise BidError(f"{donor_path} has no SC with presence logits (bid train --hazard-sc --sc-presence) to graft")
+    if (theirs.frame_hw, theirs.n_commands) != (mine.frame_hw, mine.n_commands):
+        raise BidError(f"{donor_path} reads {theirs.frame_hw} frames and {theirs.n_commands} commands, "
+                       f"{base_path} {mine.frame_hw} and {mine.n_commands}: graft between one preset's models")
+    try:
+        model_cfg = dataclasses.replace(mine, sc_fine=theirs.sc_scale)
+    except ValueError as e:
+        raise BidError(f"cannot graft {donor_path}'s SC onto {base_path}: {e}") from None
+    state = {**base["model"], **{"hazard_sc_fine." + k.removeprefix("hazard_sc."): v
+                                 for k, v in donor["model"].items() if k.startswith("hazard_sc.")}}
+    BID(model_cfg).load_state_dict(state)  # every tensor in its place, or a RuntimeError
+    payload = {k: v for k, v in base.items() if k not in ("optimizer", "scheduler")}
+    payload["config"] = {**base["config"], "model": dataclasses.asdict(model_cfg)}
+    payload.update(model=state, git_hash=git_hash(),
+                   graft={"base": str(base_path), "base_git_hash": base.get("git_hash"),
+                          "fine_sc": str(donor_path), "fine_sc_git_hash": donor.get("git_hash"),
+                          "fine_sc_epoch": donor.get("epoch"), "fine_sc_config": donor["config"]})
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_checkpoint(out, payload)

@@ -104,6 +104,10 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --hazard-sc, SC reads the frames N times as fine as the cortex (2: 128x384 "
                         "beside small's 64x192; the cortex reads them area-averaged down, as before); "
                         "--init from another scale starts SC afresh and keeps every other weight")
+    p.add_argument("--sc-fine", type=int, default=None, metavar="N",
+                   help="with --hazard-sc, a second SC with presence logits on frames N times as fine as the "
+                        "cortex's, its pedestrian read while the ego moves: a model `bid graft` made, to "
+                        "--init from (e.g. --train-only SC_fine; 0: none, the default)")
     p.add_argument("--hazard-speedless", action="store_true", default=None,
                    help="with --hazard and a speed input, the hazard head reads MPC's tokens merged without "
                         "the speed token (standing, the head with it read a car ahead in an empty street); "
@@ -235,6 +239,18 @@ def _average(args: argparse.Namespace) -> int:
     return 0
 
 
+def _graft(args: argparse.Namespace) -> int:
+    from bid_model.checkpoint import graft_fine_sc
+
+    payload = graft_fine_sc(args.checkpoint, args.fine_sc, args.out)
+    model = payload["config"]["model"]
+    print(f"{args.out}: {args.checkpoint} with {args.fine_sc}'s SC beside its own, reading frames "
+          f"{model['sc_fine']}x finer (input {model['frame_hw'][0] * model['sc_fine']}x"
+          f"{model['frame_hw'][1] * model['sc_fine']}); its pedestrian read "
+          f"{'while the ego moves' if model['fine_moving'] else 'always'}")
+    return 0
+
+
 def _probe(args: argparse.Namespace) -> int:
     from bid_model.probe import probe_hazards, probe_table, write_probe
 
@@ -248,7 +264,7 @@ def _probe(args: argparse.Namespace) -> int:
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    """Add the model's subcommands (train, gradcam, export, average, lesion, probe) to the `bid` parser."""
+    """Add the model's subcommands (train, gradcam, export, average, graft, lesion, probe) to the `bid` parser."""
     t = sub.add_parser("train", help="train the BID model (runs/NAME holds config, metrics, "
                                      "checkpoints and plots)")
     add_train_arguments(t)
@@ -284,6 +300,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                          "those (default: leave it out)")
     av.set_defaults(func=_average)
 
+    gr = sub.add_parser("graft", help="a checkpoint with a second SC beside its own, another checkpoint's "
+                                      "(no training): its pedestrian joins the hazard reading while moving")
+    gr.add_argument("checkpoint", help="a checkpoint with SC (--hazard-sc), e.g. checkpoints/bid_small.pt")
+    gr.add_argument("--fine-sc", required=True, metavar="CKPT",
+                    help="a checkpoint of the same preset whose SC has presence logits (--sc-presence), "
+                         "usually on finer frames (--sc-scale 2)")
+    gr.add_argument("--out", required=True, help="the .pt to write")
+    gr.set_defaults(func=_graft)
+
     le = sub.add_parser("lesion", help="closed-loop benchmark with each brain area switched off in turn")
     le.add_argument("--checkpoint", required=True)
     le.add_argument("--town", default="02")
@@ -307,8 +332,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     pr.add_argument("--second-head", action="store_true",
                     help="probe the second head (bid train --move-off-head), not the first")
-    pr.add_argument("--source", choices=("merged", "head", "SC"), default="merged",
+    pr.add_argument("--source", choices=("merged", "head", "SC", "SC_fine"), default="merged",
                     help="with SC (--hazard-sc): probe the reading driving uses (merged, the default), the "
-                         "head's alone or SC's alone (with --sc-presence also its logits at lower thresholds)")
+                         "head's alone, SC's alone (with --sc-presence also its logits at lower thresholds) "
+                         "or the fine SC's alone (bid graft; standing too, and its logits)")
     pr.add_argument("--out", default=None, metavar="PATH", help="also write PATH.json and PATH.md")
     pr.set_defaults(func=_probe)

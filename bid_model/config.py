@@ -28,12 +28,13 @@ VARIANT_FIELDS = frozenset({"variant", *VARIANTS["full"]})
 # Fields whose change only adds or drops parts: `--init` starts those afresh.
 # (sc_scale: SC and the crossing map start afresh at their new resolution.)
 INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_attend", "hazard_sc",
-                               "sc_presence", "hazard_crossing", "move_off_head", "head_presence", "sc_scale"}
+                               "sc_presence", "hazard_crossing", "move_off_head", "head_presence", "sc_scale",
+                               "sc_fine"}
 # Fields `--init` adapts to: the input size (the token grids' positional embeddings are
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
 # Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
-READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed"})
+READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed", "fine_moving"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -43,6 +44,8 @@ FORECAST_S = (1.0, 2.0, 3.0)
 # hazard_crossing), here so that the network imports without the simulator.
 KINDS = ("pedestrian", "vehicle", "red_light", "crossing")
 PATH_KINDS = KINDS[:2]  # those found in the path (hazards.path_hazards)
+# The ego moves at this speed or faster (train --hazard-moving-weight, bid probe, config.fine_moving).
+MOVING_MPS = 0.3
 
 PRESETS = ("paper", "small", "tiny")
 
@@ -108,6 +111,16 @@ class ModelConfig:
     # to frame_hw, which is what it read before up to rounding (an area resize by a whole factor
     # is the average of the finer one's cells). At 64×192 a person 10 m off is 3 pixels wide.
     sc_scale: int = 1
+    # A second SC with presence logits (BID.hazard_sc_fine) reading the frames at sc_fine times
+    # frame_hw (0: none), beside the first: another checkpoint's SC grafted in (`bid graft`), so
+    # that two SCs each read what they read best. Its pedestrian joins the merge (the vehicle stays
+    # the head's and the first SC's): the shipped SC at 1× saw 46 % of a standing ego's pedestrians
+    # within 10 m and 8 % of a moving one's, sp40b's at 2× 20 % and 25 % (docs/experiments.md).
+    # The input is frame_hw × the larger of sc_scale and sc_fine; each reads it area-averaged down.
+    sc_fine: int = 0
+    # The fine SC's pedestrian counts only while the ego moves (MOVING_MPS or faster): standing it
+    # added 2.4 points of pedestrians seen for 3.1 points of false sightings, moving 23 for 3.4.
+    fine_moving: bool = True
     # The hazard head reads MPC's tokens merged a second time without the speed token, so that it
     # cannot read "standing, so something ahead": with the speed, the shipped head read a vehicle
     # 7.5 m ahead of a standing ego in an empty street (at 5 m/s: none), which kept move-off
@@ -151,6 +164,13 @@ class ModelConfig:
             raise ValueError(f"sc_scale is a whole factor, 1 to 4, got {self.sc_scale!r}")
         if self.sc_scale > 1 and not self.hazard_sc:
             raise ValueError("sc_scale is SC's resolution: it needs hazard_sc")
+        if not (isinstance(self.sc_fine, int) and 0 <= self.sc_fine <= 4):
+            raise ValueError(f"sc_fine is a whole factor, 1 to 4, or 0 for none; got {self.sc_fine!r}")
+        if self.sc_fine and not self.hazard_sc:
+            raise ValueError("sc_fine is a second SC beside the first: it needs hazard_sc")
+        if self.sc_fine and self.input_scale % min(self.sc_scale, self.sc_fine):
+            raise ValueError(f"sc_scale {self.sc_scale} and sc_fine {self.sc_fine} read one input each "
+                             "area-averaged down by a whole factor: one must divide the other")
         if self.hazard_crossing and not (self.hazard_sc and self.hazard_light):
             raise ValueError("hazard_crossing is the fourth hazard output, beside SC: it needs hazard_sc and hazard_light")
         if self.hazard_speedless and not (self.hazard and self.speed_input):
@@ -173,9 +193,18 @@ class ModelConfig:
         return self.widths[3]
 
     @property
+    def input_scale(self) -> int:
+        """How many times finer than frame_hw the network's input is: SC's or the fine SC's scale."""
+        return max(self.sc_scale, self.sc_fine)
+
+    def scaled_hw(self, scale: int) -> tuple[int, int]:
+        """(rows, columns) of frame_hw `scale` times finer."""
+        return self.frame_hw[0] * scale, self.frame_hw[1] * scale
+
+    @property
     def input_hw(self) -> tuple[int, int]:
-        """(rows, columns) of the frames the network takes: frame_hw, SC's sc_scale times finer."""
-        return self.frame_hw[0] * self.sc_scale, self.frame_hw[1] * self.sc_scale
+        """(rows, columns) of the frames the network takes: frame_hw, input_scale times finer."""
+        return self.scaled_hw(self.input_scale)
 
 
 @dataclass(frozen=True)

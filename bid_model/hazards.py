@@ -61,7 +61,6 @@ AHEAD_STEP_S = 0.5  # with ped_ahead_s, where pedestrians will be is looked at t
 _VERSION = "hazard-v1"  # part of the cache key: bump when the definition changes
 ONTO_S = 1.0  # a pedestrian walking onto a crossing within this long is on it already
 WALKING_MPS = 0.3  # slower is standing
-MOVING_MPS = 0.3  # the ego moves at this speed or faster (train --hazard-moving-weight, bid probe)
 # A standing ego's front this near a light's stop line, or past it, stands at the line (train
 # --hazard-green-weight, bid probe's "stop line"): the expert stands 0.5-1.5 m before a red one.
 AT_LINE_M = 3.0

@@ -15,7 +15,9 @@ its path from one beside it. Driving never reads it either. With `config.hazard_
 shallow pathway on frames t and t−1 at the full input size that never sees the speed
 (areas.SC), says it too, and the pedestrian's and the vehicle's nearness are the larger of
 the two: a person 10 m off is 3 pixels of a 64×192 frame, gone by IT's grid, and the head on
-MPC's tokens learnt that at 10 m/s nothing is near (docs/experiments.md).
+MPC's tokens learnt that at 10 m/s nothing is near (docs/experiments.md). With
+`config.sc_fine` a second SC on finer frames, grafted from another checkpoint, adds its
+pedestrian (`BID.merge_hazard`).
 
 `BID.forward_features` returns every area's output by name; `forward_head` is CPC. Any area
 can be lesioned at inference (`set_lesions`, `lesioned`): its output is replaced by zeros or
@@ -31,7 +33,7 @@ import torch
 from torch import nn
 
 from bid_model.areas import CPC, DPC, IT, MPC, MT, OFC, SC, V1, V2, V4, VPC, GridTokens, half
-from bid_model.config import PATH_KINDS, ModelConfig
+from bid_model.config import MOVING_MPS, PATH_KINDS, ModelConfig
 from bid_sim.errors import BidError
 
 AREAS = ("V1", "V2", "V4", "IT", "MT", "VPC", "DPC", "OFC", "MPC", "CPC")
@@ -166,11 +168,15 @@ class BID(nn.Module):
         # With config.head_presence it says also whether a pedestrian is in the path (PresenceHazardHead).
         self.hazard_head = self._new_hazard_head(c.head_presence) if c.hazard else None
         # With config.hazard_sc SC says it too, from the frames alone: forward_hazard reads the nearer.
-        self.hazard_sc = (SC(c.input_hw, c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
+        self.hazard_sc = (SC(c.scaled_hw(c.sc_scale), c.n_commands, len(PATH_KINDS), presence=c.sc_presence)
                           if c.hazard_sc else None)
+        # With config.sc_fine a second SC, with presence, on frames sc_fine times finer: its
+        # pedestrian joins the merge (merge_hazard).
+        self.hazard_sc_fine = (SC(c.scaled_hw(c.sc_fine), c.n_commands, len(PATH_KINDS), presence=True)
+                               if c.sc_fine else None)
         # With config.hazard_crossing a second SC map of its own, one kind: how near the next crossing
         # on the path with a pedestrian on it is (the fourth hazard output; warm_start_crossing).
-        self.hazard_crossing = SC(c.input_hw, c.n_commands, 1) if c.hazard_crossing else None
+        self.hazard_crossing = SC(c.scaled_hw(c.sc_scale), c.n_commands, 1) if c.hazard_crossing else None
         # With config.move_off_head a second hazard head, alike, reading MPC without the speed token
         # (with config.move_off_speed with it).
         self.hazard_move_off = self._new_hazard_head() if c.move_off_head else None
@@ -292,10 +298,15 @@ class BID(nn.Module):
         c, b = self.config, frame_t.shape[0]
         feats: dict[str, torch.Tensor] = {}
         seen_t, seen_prev = self._normalise(frame_t), self._normalise(frame_prev)
-        if c.sc_scale > 1:  # the cortex reads the frames SC reads, area-averaged down to frame_hw
-            cortex_t, cortex_prev = (nn.functional.avg_pool2d(x, c.sc_scale) for x in (seen_t, seen_prev))
-        else:
-            cortex_t, cortex_prev = seen_t, seen_prev
+
+        def at_scale(scale: int) -> tuple[torch.Tensor, torch.Tensor]:
+            """Frames t and t−1 area-averaged down to frame_hw × scale."""
+            down = c.input_scale // scale
+            if down == 1:
+                return seen_t, seen_prev
+            return nn.functional.avg_pool2d(seen_t, down), nn.functional.avg_pool2d(seen_prev, down)
+
+        cortex_t, cortex_prev = at_scale(1)  # what the cortex read before any SC read finer frames
         if c.dorsal:  # one V1 pass over both frames
             v1_both = self._area("V1", torch.cat([cortex_t, cortex_prev]))
             feats["V1"], v1_prev = v1_both.split(b)
@@ -321,9 +332,12 @@ class BID(nn.Module):
         if c.hazard_speedless or (c.move_off_head and not c.move_off_speed):  # for a hazard head alone
             feats["MPC_speedless"] = self._speedless_mpc({k: v for k, v in streams.items() if k != "speed"})
         if self.hazard_sc is not None:
-            feats["SC"] = self.hazard_sc(seen_t, seen_t if c.sc_still else seen_prev, command_onehot.float())
-        if self.hazard_crossing is not None:
-            feats["crossing"] = self.hazard_crossing(seen_t, seen_prev, command_onehot.float())
+            sc_t, sc_prev = at_scale(c.sc_scale)
+            feats["SC"] = self.hazard_sc(sc_t, sc_t if c.sc_still else sc_prev, command_onehot.float())
+            if self.hazard_crossing is not None:
+                feats["crossing"] = self.hazard_crossing(sc_t, sc_prev, command_onehot.float())
+        if self.hazard_sc_fine is not None:
+            feats["SC_fine"] = self.hazard_sc_fine(*at_scale(c.sc_fine), command_onehot.float())
         if self.training:
             self.mean_batches += 1
         return feats
@@ -351,14 +365,16 @@ class BID(nn.Module):
         return self.forecast_head(features["MPC"].mean(dim=1)) * SPEED_SCALE_MPS
 
     def forward_hazard(self, features: dict[str, torch.Tensor], apart: bool = False,
-                       move_off: bool = False) -> torch.Tensor:
+                       move_off: bool = False, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
         """(batch, hazard_kinds()): nearness of the nearest (pedestrian, vehicle) in the path and,
         with config.hazard_light, of a red light's stop line, from MPC's tokens (and with
         config.hazard_attend from V2's and V4's grids too; with config.hazard_sc the
         pedestrian's and the vehicle's are the larger of the head's and SC's, SC's with
         config.sc_presence only where its logit says one is in the path; with `apart` the head's
         outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
-        then its logits), so that training fits each alone); with config.hazard_crossing the last
+        then its logits), so that training fits each alone, and with config.sc_fine the fine SC's
+        four after them; merged, its pedestrian with config.fine_moving only where `speed_mps`
+        is MOVING_MPS or more: merge_hazard); with config.hazard_crossing the last
         column is how near an occupied crossing is (its own SC map's), both ways. With
         config.head_presence the head's pedestrian counts only where its presence logit says she
         is in the path (gate_head); `apart` gives the logit after the head's nearness. `move_off`:
@@ -378,56 +394,76 @@ class BID(nn.Module):
         if self.hazard_sc is None:  # head_presence needs SC: nothing to gate here
             return near
         # what either sees in the path
-        crossing = [features["crossing"].to(near.dtype)] if self.hazard_crossing is not None else []
-        near = torch.cat([near, features["SC"].to(near.dtype), *crossing], dim=1)
-        return near if apart else self.merge_hazard(near)
+        sc = [features[name].to(near.dtype) for name in ("SC", "SC_fine", "crossing") if name in features]
+        near = torch.cat([near, *sc], dim=1)
+        return near if apart else self.merge_hazard(near, speed_mps)
 
-    def sc_columns(self, apart: torch.Tensor) -> torch.Tensor:
+    def sc_columns(self, apart: torch.Tensor, fine: bool = False) -> torch.Tensor:
         """SC's own columns out of forward_hazard(apart=True)'s (a model with SC): its (pedestrian,
-        vehicle) nearness, then with config.sc_presence their logits."""
-        n = self.head_columns()
-        return apart[:, n:n + len(PATH_KINDS) * (2 if self.config.sc_presence else 1)]
-
-    def sc_near(self, apart: torch.Tensor) -> torch.Tensor:
-        """(batch, 2): SC's own (pedestrian, vehicle) nearness out of forward_hazard(apart=True)'s
-        columns (a model with SC); with config.sc_presence only where its logit says one is in the
-        path, else 0."""
+        vehicle) nearness, then with config.sc_presence their logits; `fine`: the fine SC's
+        (config.sc_fine), nearness then logits, after them."""
         k = len(PATH_KINDS)
-        sc = self.sc_columns(apart)
-        if self.config.sc_presence:
+        start, width = self.head_columns(), k * (2 if self.config.sc_presence else 1)
+        if fine:
+            start, width = start + width, 2 * k if self.config.sc_fine else 0
+        return apart[:, start:start + width]
+
+    def sc_near(self, apart: torch.Tensor, fine: bool = False) -> torch.Tensor:
+        """(batch, 2): SC's own (pedestrian, vehicle) nearness out of forward_hazard(apart=True)'s
+        columns (a model with SC; `fine`: the fine SC's); with presence logits only where the
+        kind's says one is in the path, else 0."""
+        k = len(PATH_KINDS)
+        sc = self.sc_columns(apart, fine)
+        if fine or self.config.sc_presence:
             sc = torch.where(sc[:, k:] > 0, sc[:, :k], torch.zeros_like(sc[:, :k]))
         return sc
 
-    def merge_hazard(self, apart: torch.Tensor) -> torch.Tensor:
+    def merge_hazard(self, apart: torch.Tensor, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
         """forward_hazard(apart=True)'s columns (a model with SC) as forward_hazard gives them: the
-        pedestrian's and the vehicle's nearness the larger of the head's and SC's (sc_near), then
-        the head's others, then the crossing map's; the head's pedestrian with config.head_presence
-        only where it says she is in the path (gate_head)."""
+        pedestrian's and the vehicle's nearness the larger of the head's and SC's (sc_near), with
+        config.sc_fine the pedestrian's also of the fine SC's (with config.fine_moving only where
+        `speed_mps`, (batch,), is MOVING_MPS or more), then the head's others, then the crossing
+        map's; the head's pedestrian with config.head_presence only where it says she is in the
+        path (gate_head)."""
         k, n = len(PATH_KINDS), self.head_columns()
-        crossing = apart[:, n + self.sc_columns(apart).shape[1]:]
+        crossing = apart[:, n + self.sc_columns(apart).shape[1] + self.sc_columns(apart, fine=True).shape[1]:]
         head = self.gate_head(apart[:, :n])
-        return torch.cat([torch.maximum(head[:, :k], self.sc_near(apart)), head[:, k:], crossing], dim=1)
+        near = torch.maximum(head[:, :k], self.sc_near(apart))
+        if self.config.sc_fine:
+            at = PATH_KINDS.index("pedestrian")
+            fine = self.sc_near(apart, fine=True)[:, at]
+            if self.config.fine_moving:
+                if speed_mps is None:
+                    raise BidError("this model reads its fine SC only while the ego moves: pass speed_mps")
+                fine = torch.where(speed_mps.reshape(-1).to(fine.device) >= MOVING_MPS, fine, torch.zeros_like(fine))
+            near = near.clone()
+            near[:, at] = torch.maximum(near[:, at], fine)
+        return torch.cat([near, head[:, k:], crossing], dim=1)
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,
                 forecast: bool = False, hazard: bool = False,
                 hazard_apart: bool = False, move_off: bool = False) -> torch.Tensor | tuple[torch.Tensor, ...]:
-        """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6);
+        """(steer, accel) for a batch: frames (B, 3, rows, cols) uint8, command one-hot (B, 6), the
+        measured speed (B,) m/s (read with config.speed_input, and by the merge with config.sc_fine);
         with `forecast`, `hazard` and/or `move_off`, ((steer, accel), then the forecast speeds (B,
         len(forecast_s)) in m/s, then the hazard nearness (B, hazard_kinds()), then the move-off
         head's, those asked for, in that order; `hazard_apart`: forward_hazard(apart=True), both heads)."""
         feats = self.forward_features(frame_t, frame_prev, command_onehot, speed_mps)
         control = self.forward_head(feats)
         extra = (([self.forward_forecast(feats)] if forecast else [])
-                 + ([self.forward_hazard(feats, apart=hazard_apart)] if hazard else [])
-                 + ([self.forward_hazard(feats, apart=hazard_apart, move_off=True)] if move_off else []))
+                 + ([self.forward_hazard(feats, apart=hazard_apart, speed_mps=speed_mps)] if hazard else [])
+                 + ([self.forward_hazard(feats, apart=hazard_apart, move_off=True, speed_mps=speed_mps)]
+                    if move_off else []))
         return (control, *extra) if extra else control
 
     def parts(self) -> dict[str, nn.Module]:
         """Every area by name, then the optional extra pathways this model has: dorsal_tokens,
-        speed, forecast, hazard, SC, crossing, move_off (the names of parameter_counts and `bid train --train-only`)."""
+        speed, forecast, hazard, SC, SC_fine, crossing, move_off (the names of parameter_counts and
+        `bid train --train-only`)."""
         extra = (("dorsal_tokens", self.dorsal_tokens), ("speed", self.speed_token),
                  ("forecast", self.forecast_head), ("hazard", self.hazard_head), ("SC", self.hazard_sc),
+                 ("SC_fine", self.hazard_sc_fine),
                  ("crossing", self.hazard_crossing), ("move_off", self.hazard_move_off))
         return {**self.areas, **{name: module for name, module in extra if module is not None}}
 

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from bid_model.checkpoint import load_model
-from bid_model.config import KINDS, PATH_KINDS
+from bid_model.config import KINDS, MOVING_MPS, PATH_KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
+from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.recordings import open_every_frame
 from bid_model.train import hazard_detection, ranking_auc, second_targets
 from bid_sim.errors import BidError
@@ -35,9 +35,9 @@ THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6)
 # lost or read far in the last metres (docs/experiments.md), which the share within NEAR_M hides.
 CLOSE_M = 4.0
 # What is probed (`bid probe --source`): the hazard reading the brakes use (with SC, the larger
-# of the head's and SC's), the head's alone, or SC's alone; the merged reading hides which of
-# the two sees and which reads wrongly.
-SOURCES = ("merged", "head", "SC")
+# of the head's and SC's), the head's alone, SC's alone, or the fine SC's alone (config.sc_fine);
+# the merged reading hides which of them sees and which reads wrongly.
+SOURCES = ("merged", "head", "SC", "SC_fine")
 # SC's presence logits (--sc-presence) are also read at these thresholds: one trained at a
 # positive weight w says yes where it judges the odds above 1 / (1 + w); a lower threshold is
 # what a larger w would have said, were the logit calibrated.
@@ -121,8 +121,10 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     first head's are) in place of the first head's, against its own targets (with `bid train
     --second-bumper` its vehicle the nearer of the path's and the one ahead of the bumper).
     `source` (SOURCES): the reading driving uses ("merged"), or with SC the head's alone (its
-    pedestrian gated by its presence logit, as driving reads it) or SC's alone (gated by its
-    logits with --sc-presence; then also `logits`, _logits of SC's logits over all frames)."""
+    pedestrian gated by its presence logit, as driving reads it), SC's alone (gated by its
+    logits with --sc-presence; then also `logits`, _logits of SC's logits over all frames) or
+    the fine SC's alone (config.sc_fine; gated by its logits, and `logits` too), while the ego
+    stands too."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     if source not in SOURCES:
@@ -139,6 +141,8 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         raise BidError(f"{checkpoint} has no second head to probe (bid train --move-off-head); drop --second-head")
     if apart and not config.model.hazard_sc:
         raise BidError(f"{checkpoint} has no SC (--hazard-sc): its reading is its head's alone; drop --source")
+    if source == "SC_fine" and not config.model.sc_fine:
+        raise BidError(f"{checkpoint} has no fine SC (bid graft --fine-sc); probe --source SC or merged")
     bumper_m = config.train.second_bumper_m if second else 0.0
     data, facts = open_every_frame(folder, config.model.input_hw, crossing=config.model.hazard_crossing,
                                    bumper_m=bumper_m)
@@ -148,18 +152,18 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         for start in range(0, len(rows), batch_size):
             items = [data[int(i)] for i in rows[start:start + batch_size]]
             command = [it["command"] for it in items]
-            speed = (torch.tensor([it["speed_mps"] for it in items], dtype=torch.float32)
-                     if config.model.speed_input else None)
+            speed = torch.tensor([it["speed_mps"] for it in items], dtype=torch.float32)
             out = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
                         command_one_hot(command), speed, hazard=True, hazard_apart=apart,
                         **({"move_off": True} if second else {}))
             pred = out[-1].float()
             if source == "head":
                 pred = model.gate_head(pred[:, :model.head_columns()])
-            elif source == "SC":
-                if config.model.sc_presence:
-                    logits.append(model.sc_columns(pred)[:, len(PATH_KINDS):])
-                pred = model.sc_near(pred)
+            elif source in ("SC", "SC_fine"):
+                fine = source == "SC_fine"
+                if fine or config.model.sc_presence:
+                    logits.append(model.sc_columns(pred, fine)[:, len(PATH_KINDS):])
+                pred = model.sc_near(pred, fine)
             preds.append(pred)
             near = torch.stack([it["hazard"] for it in items])
             if bumper_m > 0:
@@ -203,7 +207,7 @@ def _metres(read: float | None, true: float | None) -> str:
 
 def probe_table(result: dict[str, Any]) -> str:
     """The probe's figures as markdown: one table per kind, a row per group."""
-    head = {"head": " (its head alone)", "SC": " (SC alone)"}.get(result.get("source"), "")
+    head = {"head": " (its head alone)", "SC": " (SC alone)", "SC_fine": " (the fine SC alone)"}.get(result.get("source"), "")
     head += " (its second head)" if result.get("head") == "second" else ""
     if result.get("bumper_m"):
         head += f" (vehicles also within {result['bumper_m']:g} m ahead of the bumper)"

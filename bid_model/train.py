@@ -53,6 +53,7 @@ from bid_model.config import (
     FORECAST_S,
     INIT_FIELDS,
     KINDS,
+    MOVING_MPS,
     PATH_KINDS,
     READ_FIELDS,
     RESIZE_FIELDS,
@@ -62,7 +63,7 @@ from bid_model.config import (
     with_variant,
 )
 from bid_model.data import SyntheticDriving, check_sample, command_one_hot, synthetic_split
-from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
+from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.losses import l1_loss
 from bid_model.model import (
     BID,
@@ -715,6 +716,8 @@ def train_epoch(net: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, 
                 sc_loss = presence_loss if base.config.sc_presence else hazard_loss
                 sc_end = head_end + k * (1 + base.config.sc_presence)
                 loss = loss + tc.lambda_hazard * sc_loss(hazard[:, head_end:sc_end], near[:, :k], *weights)
+                if base.config.sc_fine:  # the fine SC's, with presence, after SC's
+                    loss = loss + tc.lambda_hazard * presence_loss(hazard[:, sc_end:sc_end + 2 * k], near[:, :k], *weights)
             if crossing:
                 at = KINDS.index("crossing")
                 loss = loss + tc.lambda_hazard * hazard_loss(hazard[:, -1:], near[:, at:at + 1], *weights)
@@ -1142,6 +1145,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
              "--hazard-vehicle-moving-weight": args.hazard_vehicle_moving_weight,
              "--hazard-attend": args.hazard_attend, "--hazard-sc": args.hazard_sc,
              "--sc-presence": args.sc_presence, "--sc-still": args.sc_still, "--sc-scale": args.sc_scale,
+             "--sc-fine": args.sc_fine,
              "--head-presence": args.head_presence,
              "--hazard-speedless": args.hazard_speedless, "--move-off-head": args.move_off_head,
              "--move-off-speed": args.move_off_speed, "--second-bumper": args.second_bumper,
@@ -1275,6 +1279,13 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
             raise BidError(f"--sc-scale is a whole factor, 1 to 4 (2: SC reads frames twice as fine as "
                            f"the cortex); got {args.sc_scale}")
         model = dataclasses.replace(model, sc_scale=args.sc_scale)
+    if args.sc_fine is not None:
+        if not model.hazard_sc:
+            raise BidError("--sc-fine is a second SC beside the first: add --hazard-sc (and --hazard WEIGHT)")
+        try:
+            model = dataclasses.replace(model, sc_fine=args.sc_fine)
+        except ValueError as e:
+            raise BidError(f"--sc-fine {args.sc_fine}: {e}") from None
     if args.hazard_crossing:
         if not model.hazard_sc:
             raise BidError("--hazard-crossing is a second SC map beside SC: add --hazard-sc (and --hazard WEIGHT)")

@@ -988,3 +988,46 @@ def test_light_still_reads_the_red_light_from_frame_t_alone_below_start_speed(tm
 
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--light-still", "--light-short", "0"])
     assert _drive_options(args, None) == {"light_still": True, "light_short": 0.0}  # a gap of 0 is kept
+
+
+def test_a_grafted_fine_sc_brakes_for_its_pedestrian_only_while_moving(tmp_path, capsys):
+    """`bid graft` of the shipped checkpoint with a second SC at 2× (sp40b's kind): the agent
+    prepares frames twice as fine, and the pedestrian brake reads the fine SC's pedestrian while
+    the ego moves (0.3 m/s or faster), not while it stands; its vehicle is not read."""
+    import numpy as np
+    import torch
+
+    from bid_model.agent import pedestrian_brake
+    from bid_model.checkpoint import load_checkpoint, save_checkpoint
+    from bid_model.config import RunConfig
+    from bid_model.model import BID
+    from bid_sim.agents import Observation
+
+    shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
+    donor = load_checkpoint(shipped)  # the shipped network with a fresh SC at 2×, with presence
+    donor["config"]["model"] = {**donor["config"]["model"], "sc_scale": 2, "sc_presence": True}
+    torch.manual_seed(0)
+    fresh = BID(RunConfig.from_dict(donor["config"]).model).state_dict()
+    donor["model"] = {**donor["model"], **{k: v for k, v in fresh.items() if k.startswith("hazard_sc.")}}
+    save_checkpoint(tmp_path / "donor.pt", donor)
+    assert main(["graft", str(shipped), "--fine-sc", str(tmp_path / "donor.pt"), "--out", str(tmp_path / "g.pt")]) == 0
+    assert "input 128x384" in capsys.readouterr().out
+    agent = BIDAgent(tmp_path / "g.pt", hazard_brake=1.0)
+    assert agent.hw == (128, 384)
+    with torch.no_grad():  # the control head accelerates; only the fine SC sees anything
+        agent.model.areas["CPC"].head[-1].weight.zero_()
+        agent.model.areas["CPC"].head[-1].bias.copy_(torch.tensor([0.0, 100.0]))
+        agent.model.hazard_head[-1].weight.zero_()
+        agent.model.hazard_head[-1].bias.zero_()
+        agent.model.hazard_sc.priority[-1].weight.zero_()
+        agent.model.hazard_sc.priority[-1].bias.zero_()
+        agent.model.hazard_sc_fine.priority[-1].weight.zero_()
+        agent.model.hazard_sc_fine.priority[-1].bias.copy_(torch.tensor([0.9, 0.9, 5.0, 5.0]))
+    frame = np.random.default_rng(5).integers(0, 255, (300, 900, 3), dtype=np.uint8)
+    for speed, brake in ((6.0, pedestrian_brake(0.9, 6.0)), (0.3, pedestrian_brake(0.9, 0.3)),
+                         (0.29, 0.0), (0.0, 0.0)):
+        agent.reset(None)
+        accel = agent.act(Observation(frame, frame, 4, speed, None)).accel
+        assert accel == (pytest.approx(-brake, abs=1e-5) if brake > 0 else pytest.approx(1.0)), speed
+        assert agent.near[1] == 0.0  # the fine SC's vehicle is not read
+    assert pedestrian_brake(0.9, 0.3) > 0

@@ -318,3 +318,48 @@ def test_sc_scale_gives_sc_finer_frames_and_the_cortex_the_same_ones_averaged_do
     for bad, why in (({"sc_scale": 2, "hazard_sc": False}, "needs hazard_sc"), ({"sc_scale": 0}, "whole factor")):
         with pytest.raises(ValueError, match=why):
             dataclasses.replace(coarse_cfg, **bad)
+
+
+def test_sc_fine_is_a_second_sc_on_finer_frames_whose_pedestrian_counts_while_moving():
+    """sc_fine 2 beside an SC at 1×: the network takes frames twice as fine; the cortex and the
+    first SC read them area-averaged down, so a frame of 2×2 blocks drives them exactly as the
+    coarse frame drives the model without the fine SC; the fine SC reads the fine frame as a
+    model with SC at sc_scale 2 and presence does. Merged, its pedestrian joins the first's only
+    where the ego moves; the vehicle stays the head's and the first SC's."""
+    base_cfg = dataclasses.replace(tiny().model, hazard=True, hazard_light=True, hazard_sc=True)
+    fine_cfg = dataclasses.replace(base_cfg, sc_fine=2)
+    donor_cfg = dataclasses.replace(base_cfg, sc_scale=2, sc_presence=True)
+    assert fine_cfg.input_hw == (64, 192) and fine_cfg.scaled_hw(fine_cfg.sc_scale) == (32, 96)
+    torch.manual_seed(0)
+    base, donor, fine = BID(base_cfg).eval(), BID(donor_cfg).eval(), BID(fine_cfg).eval()
+    assert "SC_fine" in fine.parts() and "SC_fine" not in base.parts()
+    fine.load_state_dict({**base.state_dict(), **{"hazard_sc_fine." + k.removeprefix("hazard_sc."): v
+                                                  for k, v in donor.state_dict().items() if k.startswith("hazard_sc.")}})
+    frame, prev = (torch.randint(0, 256, (4, 3, 32, 96), dtype=torch.uint8) for _ in range(2))
+    cmd = torch.eye(6)[[1, 4, 2, 3]]
+    blocks = [x.repeat_interleave(2, dim=2).repeat_interleave(2, dim=3) for x in (frame, prev)]
+    with torch.no_grad():
+        want = base(frame, prev, cmd, hazard=True, hazard_apart=True)
+        theirs = donor(*blocks, cmd, hazard=True, hazard_apart=True)[1]
+        control, apart = fine(*blocks, cmd, hazard=True, hazard_apart=True)
+    assert torch.allclose(control, want[0], atol=1e-6)
+    assert apart.shape[1] == want[1].shape[1] + 4  # the head's 3, SC's 2, then the fine SC's 4
+    assert torch.allclose(apart[:, :5], want[1], atol=1e-6)
+    assert torch.equal(fine.sc_columns(apart, fine=True), apart[:, 5:9])
+    assert torch.allclose(fine.sc_columns(apart, fine=True), donor.sc_columns(theirs), atol=1e-6)
+    assert torch.allclose(fine.sc_near(apart, fine=True), donor.sc_near(theirs), atol=1e-6)
+    # Give the fine SC a pedestrian in every row (its logit made positive, its nearness high).
+    apart[:, 5], apart[:, 7] = 0.9, 1.0
+    speed = torch.tensor([0.0, 0.29, 0.3, 5.0])
+    merged, before = fine.merge_hazard(apart, speed), base.merge_hazard(apart[:, :5])
+    moving = speed >= 0.3
+    assert torch.equal(merged[~moving], before[~moving])
+    assert torch.equal(merged[moving, 0], torch.full((2,), 0.9)) and torch.equal(merged[:, 1:], before[:, 1:])
+    always = BID(dataclasses.replace(fine_cfg, fine_moving=False))
+    assert torch.equal(always.merge_hazard(apart)[:, 0], torch.full((4,), 0.9))
+    with pytest.raises(BidError, match="pass speed_mps"):
+        fine.merge_hazard(apart)
+    for bad, why in (({"sc_fine": 2, "hazard_sc": False}, "needs hazard_sc"), ({"sc_fine": 5}, "whole factor"),
+                     ({"sc_fine": 2, "sc_scale": 3}, "one must divide the other")):
+        with pytest.raises(ValueError, match=why):
+            dataclasses.replace(base_cfg, **bad)

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from bid_model.checkpoint import load_model
+from bid_model.checkpoint import load_checkpoint, load_model
+from bid_model.config import MOVING_MPS
 from bid_model.data import COMMAND_NAMES, command_one_hot
-from bid_model.hazards import HAZARD_AHEAD_M, MOVING_MPS, NEAR_M, SEEN_NEARNESS
+from bid_model.hazards import HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.probe import CLOSE_M, _group, probe_hazards, probe_table
 from bid_model.recordings import open_every_frame, open_recordings
 from bid_model.train import hazard_detection
@@ -24,6 +25,15 @@ def hazard_run(recorded, tmp_path_factory):
     assert bid([*base, "--out", str(out / "plain")]) == 0
     assert bid([*base, "--init", str(out / "plain" / "last.pt"), "--hazard", "1", "--out", str(out / "hz")]) == 0
     return out
+
+
+@pytest.fixture(scope="module")
+def sc_run(recorded, tmp_path_factory):
+    """last.pt of a tiny model trained with SC and its presence logits."""
+    out = tmp_path_factory.mktemp("probe_sc") / "pr"
+    assert bid(["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8",
+                "--quiet", "--hazard", "1", "--hazard-sc", "--sc-presence", "--out", str(out)]) == 0
+    return out / "last.pt"
 
 
 def test_every_frame_is_every_recorded_frame_in_order_with_the_training_targets(recorded):
@@ -172,15 +182,13 @@ def test_probe_reads_how_far_the_seen_ones_are_and_the_close_ones_apart():
     assert "| all | 4 | 75.0 | 1 | 0.0 | 0.875 | 6.0 (3.0) | 3 | 66.7 | 5.0 (2.0) |" in table
 
 
-def test_probe_source_reads_the_head_and_sc_apart(recorded, hazard_run, tmp_path, capsys, one_thread):
+def test_probe_source_reads_the_head_and_sc_apart(recorded, hazard_run, sc_run, capsys, one_thread):
     """--source head / SC: with SC, the head's reading and SC's alone, each as driving reads it
     (gated by its presence logit), against the same targets; SC's logits also at lower
     thresholds. The merged reading, the larger of the two, sees at least what either sees."""
     from bid_model.train import ranking_auc
 
-    base = ["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8", "--quiet"]
-    assert bid([*base, "--hazard", "1", "--hazard-sc", "--sc-presence", "--out", str(tmp_path / "pr")]) == 0
-    checkpoint = tmp_path / "pr" / "last.pt"
+    checkpoint = sc_run
     merged, head, sc = (probe_hazards(checkpoint, recorded, every=2, source=s) for s in ("merged", "head", "SC"))
     assert "source" not in merged and "logits" not in merged and "logits" not in head
     assert (head["source"], sc["source"]) == ("head", "SC")
@@ -226,3 +234,49 @@ def test_probe_source_reads_the_head_and_sc_apart(recorded, hazard_run, tmp_path
         assert says in err and "\n" not in err, err
     with pytest.raises(BidError, match="source is one of"):
         probe_hazards(checkpoint, recorded, source="sc")
+
+
+def test_graft_puts_a_second_sc_beside_the_first_and_probe_reads_it_apart(recorded, hazard_run, sc_run, tmp_path,
+                                                                          capsys, one_thread):
+    """`bid graft CKPT --fine-sc DONOR`: CKPT's weights as they were, DONOR's SC beside them as the
+    fine SC. Grafted onto itself (SC with presence at 1×), the fine SC reads what SC reads: `bid
+    probe --source SC_fine` gives SC's figures, and the merged reading is the base's. Refused: no
+    SC to graft onto, a donor without presence logits, a second graft, --source SC_fine without one.
+    `bid train --train-only SC_fine` fine-tunes the fine SC alone."""
+    out = tmp_path / "grafted.pt"
+    assert bid(["graft", str(sc_run), "--fine-sc", str(sc_run), "--out", str(out)]) == 0
+    assert "1x finer" in capsys.readouterr().out
+    grafted, base = load_checkpoint(out), load_checkpoint(sc_run)
+    assert grafted["config"]["model"]["sc_fine"] == 1 and grafted["graft"]["fine_sc"] == str(sc_run)
+    assert "optimizer" not in grafted
+    assert all(torch.equal(grafted["model"][k], v) for k, v in base["model"].items())
+    sc_keys = [k for k in base["model"] if k.startswith("hazard_sc.")]
+    assert sc_keys and all(torch.equal(grafted["model"]["hazard_sc_fine." + k.removeprefix("hazard_sc.")],
+                                       base["model"][k]) for k in sc_keys)
+    sc, fine = probe_hazards(sc_run, recorded, every=2, source="SC"), probe_hazards(out, recorded, every=2, source="SC_fine")
+    assert fine["source"] == "SC_fine" and "(the fine SC alone)" in probe_table(fine)
+    assert (fine["all"], fine["by"], fine["logits"]) == (sc["all"], sc["by"], sc["logits"])
+    merged, merged_base = probe_hazards(out, recorded, every=2), probe_hazards(sc_run, recorded, every=2)
+    assert (merged["all"], merged["by"]) == (merged_base["all"], merged_base["by"])
+    plain = str(hazard_run / "hz" / "last.pt")
+    for args, says in (([plain, "--fine-sc", str(sc_run)], "no SC (--hazard-sc)"),
+                       ([str(sc_run), "--fine-sc", plain], "no SC with presence logits"),
+                       ([str(out), "--fine-sc", str(sc_run)], "a fine SC already")):
+        assert bid(["graft", *args, "--out", str(tmp_path / "no.pt")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    assert not (tmp_path / "no.pt").exists()
+    with pytest.raises(BidError, match="has no fine SC"):
+        probe_hazards(sc_run, recorded, source="SC_fine")
+    # `bid train --init grafted.pt --train-only SC_fine` fits the fine SC (its presence loss) alone.
+    assert bid(["train", "--preset", "tiny", "--data", str(recorded), "--epochs", "1", "--batch-size", "8",
+                "--quiet", "--init", str(out), "--hazard", "1", "--hazard-sc", "--sc-presence", "--sc-fine", "1",
+                "--train-only", "SC_fine",
+                "--out", str(tmp_path / "ft")]) == 0
+    for flags, says in ((["--sc-fine", "2"], "add --hazard-sc"), (["--hazard-sc", "--sc-fine", "5"], "whole factor")):
+        assert bid(["train", "--preset", "tiny", "--synthetic", "--hazard", "1", *flags, "--out", str(tmp_path / "no")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert says in err and "\n" not in err, err
+    tuned = load_checkpoint(tmp_path / "ft" / "last.pt")["model"]
+    changed = {k for k, v in tuned.items() if v.is_floating_point() and not torch.equal(v, grafted["model"][k])}
+    assert changed and all(k.startswith("hazard_sc_fine.") for k in changed), sorted(changed)[:5]

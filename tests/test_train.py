@@ -762,7 +762,7 @@ def test_hazard_moving_weight_weighs_pedestrians_in_the_path_of_a_moving_ego():
     """--hazard-moving-weight: a pedestrian in the path while the ego moves (0.3 m/s or
     faster) weighs that much more, on top of the other weights; one met standing, a vehicle met
     moving and a moving ego with nobody in the path weigh as before."""
-    from bid_model.hazards import MOVING_MPS
+    from bid_model.config import MOVING_MPS
     from bid_model.train import hazard_loss, hazard_weights, presence_loss
 
     target = torch.tensor([[0.6, 0.0], [0.6, 0.0], [0.0, 0.5], [0.0, 0.0]])
@@ -782,7 +782,7 @@ def test_hazard_moving_weight_weighs_pedestrians_in_the_path_of_a_moving_ego():
 def test_hazard_vehicle_moving_weight_weighs_vehicles_in_the_path_of_a_moving_ego():
     """--hazard-vehicle-moving-weight: a vehicle in the path while the ego moves weighs that much
     more, on top of the others; a vehicle met standing and a pedestrian met moving as before."""
-    from bid_model.hazards import MOVING_MPS
+    from bid_model.config import MOVING_MPS
     from bid_model.train import hazard_loss, hazard_weights, presence_loss
 
     target = torch.tensor([[0.0, 0.6], [0.0, 0.6], [0.5, 0.0], [0.0, 0.0]])
