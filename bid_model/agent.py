@@ -124,18 +124,18 @@ def crossing_brake(nearness: float, speed_mps: float) -> float:
     return _binding(_stop_short(dist_m, speed_mps, CROSSING_SHORT_M))
 
 
-def vehicle_brake(nearness: float, speed_mps: float, hold: bool = False) -> float:
+def vehicle_brake(nearness: float, speed_mps: float, hold_m: float = 0.0) -> float:
     """Braking, as a share of full braking (0..1), for a vehicle the hazard head sees in the
     path at `nearness`: none while it is farther than HEADWAY_S at the ego's speed plus
     MIN_GAP_M (a car ahead moving off, or followed at a safe gap), else as hard as stopping
     VEHICLE_SHORT_M short of it would take, were it standing. The head gives no speed of its
     own, so a slower car followed too closely is braked for as a standing one, and the ego
-    falls back to the headway. Below BIND_SHARE it asks nothing; with `hold`, full while slow
-    with one within VEHICLE_HOLD_M."""
+    falls back to the headway. Below BIND_SHARE it asks nothing; full while slow (< START_MPS)
+    with one within `hold_m` (0: never)."""
     if nearness < SEEN_NEARNESS:
         return 0.0
     dist_m = nearness_m(nearness)
-    if hold and speed_mps < START_MPS and dist_m < VEHICLE_HOLD_M:
+    if speed_mps < START_MPS and dist_m < hold_m:
         return 1.0
     if dist_m > speed_mps * HEADWAY_S + MIN_GAP_M:
         return 0.0
@@ -309,7 +309,7 @@ class BIDAgent:
                  turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
                  vehicle_second_head: bool = False, light_still: bool = False,
                  light_short: float | None = None, move_off_green: float | None = None,
-                 green_far: float | None = None, light_hold: bool = False):
+                 green_far: float | None = None, light_hold: bool = False, vehicle_hold: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -409,8 +409,15 @@ class BIDAgent:
         if light_hold and not light_brake:
             raise BidError("light_hold keeps the light brake's stop; add light_brake, or drop it")
         self.light_hold = light_hold
+        if vehicle_hold and not vehicle_brake:
+            raise BidError("vehicle_hold is where the vehicle brake holds a slow ego; add vehicle_brake, or drop it")
+        if not 0 <= vehicle_hold <= CLEAR_M:
+            raise BidError(f"vehicle_hold is a distance from 0 to {CLEAR_M:g} m; got {vehicle_hold}")
+        self.vehicle_hold_m = vehicle_hold
         self._braked_stop_steps = round(BRAKED_STOP_S / DT_S)
         self.memory = PathMemory(path_memory) if path_memory > 0 else None
+        if self.memory is not None:
+            self.vehicle_hold_m = max(self.vehicle_hold_m, VEHICLE_HOLD_M)
         if self.memory is not None and not (hazard_brake or vehicle_brake or light_brake or move_off):
             raise BidError("path_memory is read by the brakes and move-off; add hazard_brake, vehicle_brake "
                            "or move_off, or drop it")
@@ -537,7 +544,7 @@ class BIDAgent:
             if self.move_off_steps:
                 accel = self._move_off(accel, v, clear_near)
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
-                       self.vehicle_brake * vehicle_brake(near[1], v, hold=self.memory is not None and 1 in self.memory.kinds),
+                       self.vehicle_brake * vehicle_brake(near[1], v, self.vehicle_hold_m),
                        self.light_brake * light_brake(near[2], v, self.light_short_m) if self.light_brake > 0 else 0.0,
                        self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
             if self.light_hold and v < START_MPS and near[2] >= CLEAR_READ and not self._moving_off:

@@ -141,7 +141,8 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "move_off_sc": args.move_off_sc, "move_off_light": args.move_off_light,
              "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
              "light_short": args.light_short, "move_off_green": args.move_off_green,
-             "green_far": args.green_far, "light_hold": args.light_hold}
+             "green_far": args.green_far, "light_hold": args.light_hold,
+             "vehicle_hold": args.vehicle_hold}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -306,6 +307,10 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--light-hold", action="store_true", default=None,
                    help="--agent bid with --light-brake: below 2 m/s a red light read within 8 m brakes fully, "
                         "unless --move-off is moving the ego off (bid_model/agent.py)")
+    g.add_argument("--vehicle-hold", type=float, default=None, metavar="M",
+                   help="--agent bid with --vehicle-brake: below 2 m/s a vehicle read in the path within M metres "
+                        "(0 to 8) brakes fully; below about 1 m/s the vehicle brake alone asks nothing, so the "
+                        "control head could creep into a car it reads 3-4 m off (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -319,9 +319,10 @@ def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
     assert vehicle_brake(1.0, 8.0) == 1.0
     assert vehicle_brake(0.9, 1.0) == 0.0  # 2.5 m off at 1 m/s: 1/3/8 is below BIND_SHARE, close up
     # With hold (path_memory), within 3 m and slow (below 2 m/s) it holds the ego standing.
-    assert vehicle_brake(0.9, 1.0, hold=True) == vehicle_brake(0.9, 0.0, hold=True) == 1.0
-    assert vehicle_brake(0.84, 1.0, hold=True) == 0.0  # 4 m off: as without
-    assert vehicle_brake(0.9, 2.5, hold=True) == pytest.approx(6.25 / 3 / 8)  # not at 2.5 m/s
+    assert vehicle_brake(0.9, 1.0, 3.0) == vehicle_brake(0.9, 0.0, 3.0) == 1.0
+    assert vehicle_brake(0.84, 1.0, 3.0) == 0.0  # 4 m off: as without
+    assert vehicle_brake(0.84, 1.0, 5.0) == 1.0  # held within 5 m
+    assert vehicle_brake(0.9, 2.5, 3.0) == pytest.approx(6.25 / 3 / 8)  # not at 2.5 m/s
 
 
 def test_path_memory_keeps_what_was_seen_near_once_the_head_loses_it():
@@ -614,10 +615,29 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         assert loose.act(speed).accel == pytest.approx(1.0 if speed is creeping else want, abs=1e-5)
     with pytest.raises(BidError, match="add light_brake"):
         BIDAgent(tmp_path / "hz" / "last.pt", move_off=0.8, light_hold=True)
+    # vehicle_hold 3 m: creeping at 0.6 m/s up to a car read 2 m off, the vehicle brake asks nothing
+    # (below BIND_SHARE) and the head rolls on; held, the ego stops. Read 4 m off, or at 3 m/s, as before.
+    loose = BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0)
+    held = BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, vehicle_hold=3.0)
+    creeping, driving = Observation(frame, frame, 4, 0.6, None), Observation(frame, frame, 4, 3.0, None)
+    for car, speed, want in ((0.92, creeping, -1.0), (0.84, creeping, 1.0), (0.92, driving, -vehicle_brake(0.92, 3.0))):
+        for agent in (loose, held):
+            agent.reset(None)
+            set_bias([agent], 100.0, 0.0)
+            with torch.no_grad():
+                agent.model.hazard_head[-1].bias[1] = car
+        assert held.act(speed).accel == pytest.approx(want, abs=1e-5), (car, speed.speed_mps)
+        assert loose.act(speed).accel == pytest.approx(1.0 if speed is creeping else want, abs=1e-5)
+    with pytest.raises(BidError, match="add vehicle_brake"):
+        BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, vehicle_hold=3.0)
+    with pytest.raises(BidError, match="from 0 to 8 m"):
+        BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, vehicle_hold=9.0)
     from bid_sim.cli import _drive_options, build_parser
 
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--light-brake", "1", "--light-hold"])
     assert _drive_options(args, None) == {"light_brake": 1.0, "light_hold": True}
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--vehicle-brake", "2", "--vehicle-hold", "5"])
+    assert _drive_options(args, None) == {"vehicle_brake": 2.0, "vehicle_hold": 5.0}
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "0"])
     assert _drive_options(args, None) == {"move_off_green": 0.0}  # no wait is kept
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--move-off-green", "1", "--green-far", "14"])
