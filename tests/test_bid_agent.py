@@ -318,7 +318,7 @@ def test_vehicle_brake_keeps_a_headway_behind_a_seen_vehicle():
     assert vehicle_brake(0.9, 3.0) == pytest.approx(9 / 3 / 8)  # 2.5 m off at 3 m/s
     assert vehicle_brake(1.0, 8.0) == 1.0
     assert vehicle_brake(0.9, 1.0) == 0.0  # 2.5 m off at 1 m/s: 1/3/8 is below BIND_SHARE, close up
-    # With hold (path_memory), within 3 m and slow (below 2 m/s) it holds the ego standing.
+    # With a hold distance (path_memory: 3 m; --vehicle-hold M), within it and slow (below 2 m/s) it holds the ego standing.
     assert vehicle_brake(0.9, 1.0, 3.0) == vehicle_brake(0.9, 0.0, 3.0) == 1.0
     assert vehicle_brake(0.84, 1.0, 3.0) == 0.0  # 4 m off: as without
     assert vehicle_brake(0.84, 1.0, 5.0) == 1.0  # held within 5 m
