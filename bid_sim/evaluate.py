@@ -209,6 +209,17 @@ def file_digest(path: str | os.PathLike) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
+def config_diff(old: dict, new: dict) -> list[str]:
+    """The keys of a results folder's config.json (`old`) that another run's (`new`) changes, so
+    that the two do not mix: not the software version, not a key results written before it was
+    added lack, and not the checkpoint's path where its bytes are the same (the same file,
+    moved or in another clone)."""
+    same_file = old.get("checkpoint_sha256") is not None \
+        and old.get("checkpoint_sha256") == new.get("checkpoint_sha256")
+    return [k for k in new if k != "software" and old.get(k) != new[k]
+            and not (k in ADDED_KEYS and k not in old) and not (k == "checkpoint" and same_file)]
+
+
 def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], seeds: int, agent: str,
              out: str | os.PathLike, checkpoint: str | None = None, workers: int = 1,
              routes: list[int] | None = None, record: bool = False, video: bool | int = False,
@@ -248,8 +259,7 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
     cfg_path = out / "config.json"
     if cfg_path.exists():
         old = json.loads(cfg_path.read_text())
-        diff = [k for k in config if k != "software" and old.get(k) != config[k]
-                and not (k in ADDED_KEYS and k not in old)]  # results written before a key was added
+        diff = config_diff(old, config)
         if diff == ["seeds"] and isinstance(old.get("seeds"), int) and config["seeds"] > old["seeds"]:
             # More seeds of the same run: an episode's key names its seed, so those done stay valid.
             cfg_path.write_text(json.dumps(config, indent=1))

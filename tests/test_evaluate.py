@@ -8,6 +8,7 @@ import pytest
 
 from bid_sim.cli import main
 from bid_sim.evaluate import (
+    config_diff,
     evaluate,
     failure_cause,
     load_agent,
@@ -130,6 +131,20 @@ def test_other_configuration_is_refused_but_more_seeds_extend_a_run(serial, tmp_
     assert "another configuration (seeds differ)" in capsys.readouterr().err
     assert run(out, "2", routes="0") == 2  # more seeds, but another change too
     assert "another configuration (seeds, routes differ)" in capsys.readouterr().err
+
+
+def test_a_moved_checkpoint_resumes_another_one_does_not():
+    """The same checkpoint bytes at another path (the repository cloned elsewhere) resume a
+    results folder; other bytes at the same path, or another option, do not."""
+    old = {"town": "Town02", "seeds": 1, "checkpoint": "/a/bid_small.pt", "checkpoint_sha256": "e2bb",
+           "options": {"vehicle_hold": 5.0}, "software": "bid-sim 0.1.0"}
+    assert config_diff(old, {**old, "checkpoint": "/b/bid_small.pt", "software": "bid-sim 0.2.0"}) == []
+    assert config_diff(old, {**old, "checkpoint_sha256": "ffff"}) == ["checkpoint_sha256"]
+    assert config_diff(old, {**old, "checkpoint": "/b/x.pt", "checkpoint_sha256": "ffff"}) \
+        == ["checkpoint", "checkpoint_sha256"]
+    assert config_diff(old, {**old, "checkpoint": "/b/x.pt", "options": None}) == ["options"]
+    none = {**old, "checkpoint": None, "checkpoint_sha256": None}
+    assert config_diff(none, {**none, "checkpoint": "/a/bid_small.pt"}) == ["checkpoint"]
 
 
 def test_results_name_the_net_and_another_crossing_width_is_refused(serial, tmp_path, town_with_crossings, capsys):
