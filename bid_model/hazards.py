@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import multiprocessing as mp
 import os
 from pathlib import Path
 
@@ -45,6 +44,7 @@ from shapely.geometry import Polygon
 
 from bid_model.config import PATH_KINDS
 from bid_sim.errors import BidError
+from bid_sim.parallel import map_parallel
 from bid_sim.recording import read_facts, read_snapshots
 from bid_sim.snapshot import GREEN, RED, YELLOW, Actors, Snapshot
 
@@ -355,11 +355,7 @@ def _index(files: list[Path], episode: np.ndarray, step: np.ndarray, cache_dir: 
     jobs = [file_jobs[e] for e in wanted]
     workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))
     log.info("finding the %s targets of %d recordings with %d workers", name, len(jobs), workers)
-    if workers > 1 and len(jobs) > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            results = pool.map(job_fn, jobs)
-    else:
-        results = [job_fn(j) for j in jobs]
+    results = map_parallel(job_fn, jobs, workers)
     for e, (steps, targets) in zip(wanted, results, strict=True):
         rows = np.flatnonzero(episode == e)
         at = np.searchsorted(steps, step[rows])

@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import multiprocessing as mp
 import os
 from collections import Counter
 from dataclasses import dataclass
@@ -38,6 +37,7 @@ from bid_model.hazards import (
     light_distance,
 )
 from bid_sim.errors import BidError
+from bid_sim.parallel import map_parallel, require_main_process
 from bid_sim.recording import PARTIAL, decode_jpeg, read_episode
 from bid_sim.snapshot import RED, YELLOW
 
@@ -148,25 +148,27 @@ def build_cache(index: _Index, folder: Path, frame_hw: tuple[int, int], workers:
     path = cache_dir / f"frames-{h}x{w}-{_cache_key(index.files, frame_hw)}.u8"
     if path.exists() and path.stat().st_size == total * 3 * h * w:
         return path
-    try:
-        cache_dir.mkdir(exist_ok=True)
-        for old in cache_dir.glob(f"frames-{h}x{w}-*.u8"):
-            old.unlink()
-        tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-        np.memmap(tmp, dtype=np.uint8, mode="w+", shape=(max(total, 1), 3, h, w)).flush()
-    except OSError as e:
-        raise BidError(f"cannot write the frame cache in {cache_dir} ({e.strerror}); free disk space "
-                       "or train with --no-cache") from e
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
     counts = np.bincount(index.episode, minlength=len(index.files))
     starts = np.r_[0, np.cumsum(counts)[:-1]]
     jobs = [(str(f), str(tmp), int(s), total, (h, w)) for f, s, c in zip(index.files, starts, counts, strict=True) if c]
     workers = workers or max(1, min(os.cpu_count() or 1, len(jobs)))
-    log.info("caching %d frames of %d recordings at %dx%d with %d workers", total, len(jobs), h, w, workers)
     if workers > 1 and len(jobs) > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            done = list(pool.imap_unordered(_decode_file, jobs))
-    else:
-        done = [_decode_file(j) for j in jobs]
+        require_main_process()  # before writing a cache-sized file
+    try:
+        cache_dir.mkdir(exist_ok=True)
+        for old in cache_dir.glob(f"frames-{h}x{w}-*.u8"):
+            old.unlink()
+        np.memmap(tmp, dtype=np.uint8, mode="w+", shape=(max(total, 1), 3, h, w)).flush()
+    except OSError as e:
+        raise BidError(f"cannot write the frame cache in {cache_dir} ({e.strerror}); free disk space "
+                       "or train with --no-cache") from e
+    log.info("caching %d frames of %d recordings at %dx%d with %d workers", total, len(jobs), h, w, workers)
+    try:
+        done = map_parallel(_decode_file, jobs, workers)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     if sum(done) != total:
         tmp.unlink(missing_ok=True)
         raise BidError(f"recordings in {folder} changed while caching; run again")

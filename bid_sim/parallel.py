@@ -9,7 +9,21 @@ from __future__ import annotations
 import multiprocessing as mp
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from functools import partial
 from typing import Any
+
+from bid_sim.errors import BidError
+
+# A spawned worker imports the script that started it again, its top level included.
+GUARD_HINT = 'a script that calls this needs its work under `if __name__ == "__main__":`'
+
+
+def require_main_process() -> None:
+    """BidError in a worker process: there, starting workers means a script without the guard
+    was run again in a worker, and would start workers without end."""
+    if mp.parent_process() is not None:
+        raise BidError(f"worker processes cannot start worker processes; {GUARD_HINT}")
 
 
 def run_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
@@ -19,7 +33,8 @@ def run_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
     """Calls fn(item) for every item on up to `workers` processes (in this process when
     workers <= 1 or there is one item) and reports each as it completes: on_result(item,
     result), or on_error(item, exception) when given (else the exception propagates and the
-    items not yet started are cancelled). fn, items and initargs must pickle."""
+    items not yet started are cancelled). fn, items and initargs must pickle. A worker process
+    refuses to start workers of its own (GUARD_HINT)."""
     if workers <= 1 or len(items) <= 1:
         if initializer is not None:
             initializer(*initargs)
@@ -33,6 +48,7 @@ def run_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
                 continue
             on_result(item, result)
         return
+    require_main_process()
     with ProcessPoolExecutor(min(workers, len(items)), mp_context=mp.get_context("spawn"),
                              initializer=initializer, initargs=initargs) as pool:
         futures: dict[Future, Any] = {pool.submit(fn, item): item for item in items}
@@ -53,3 +69,20 @@ def run_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
             for fut in pending:
                 fut.cancel()
             raise
+
+
+def _numbered(fn: Callable[[Any], Any], numbered: tuple[int, Any]) -> tuple[int, Any]:
+    return numbered[0], fn(numbered[1])
+
+
+def map_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> list[Any]:
+    """[fn(item) for item in items], on up to `workers` processes as run_parallel runs them; a
+    worker process that dies (out of memory, a crash, or one that ran a script without the
+    `__main__` guard) is one BidError, not a traceback from the process pool."""
+    results: dict[int, Any] = {}
+    try:
+        run_parallel(partial(_numbered, fn), list(enumerate(items)), workers,
+                     lambda _item, done: results.__setitem__(*done))
+    except BrokenProcessPool as e:
+        raise BidError(f"a worker process died before it finished (out of memory, or {GUARD_HINT})") from e
+    return [results[i] for i in range(len(items))]
