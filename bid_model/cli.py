@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from bid_model.config import PRESETS, VARIANTS
+from bid_model.config import PRESETS, PROBE_SOURCES, VARIANTS
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
@@ -332,7 +332,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     pr.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     pr.add_argument("--second-head", action="store_true",
                     help="probe the second head (bid train --move-off-head), not the first")
-    pr.add_argument("--source", choices=("merged", "head", "SC", "SC_fine"), default="merged",
+    pr.add_argument("--source", choices=PROBE_SOURCES, default="merged",
                     help="with SC (--hazard-sc): probe the reading driving uses (merged, the default), the "
                          "head's alone, SC's alone (with --sc-presence also its logits at lower thresholds) "
                          "or the fine SC's alone (bid graft; standing too, and its logits)")

@@ -46,6 +46,10 @@ KINDS = ("pedestrian", "vehicle", "red_light", "crossing")
 PATH_KINDS = KINDS[:2]  # those found in the path (hazards.path_hazards)
 # The ego moves at this speed or faster (train --hazard-moving-weight, bid probe, config.fine_moving).
 MOVING_MPS = 0.3
+# What `bid probe --source` probes: the hazard reading the brakes use (with SC, the larger of the
+# head's and SC's), the head's alone, SC's alone, or the fine SC's alone (sc_fine); the merged
+# reading hides which of them sees and which reads wrongly. Here so the CLI lists them without torch.
+PROBE_SOURCES = ("merged", "head", "SC", "SC_fine")
 
 PRESETS = ("paper", "small", "tiny")
 

@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from bid_model.checkpoint import load_model
-from bid_model.config import KINDS, MOVING_MPS, PATH_KINDS
+from bid_model.config import KINDS, MOVING_MPS, PATH_KINDS, PROBE_SOURCES
 from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.recordings import open_every_frame
-from bid_model.train import hazard_detection, ranking_auc, second_targets
+from bid_model.train import hazard_detection, near_and_none, ranking_auc, second_targets
 from bid_sim.errors import BidError
 
 # Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
@@ -34,10 +34,6 @@ THRESHOLDS = (0.2, 0.3, 0.4, 0.5, 0.6)
 # The close band read apart: the closed loop's pedestrian contacts were seen at 5-8 m and then
 # lost or read far in the last metres (docs/experiments.md), which the share within NEAR_M hides.
 CLOSE_M = 4.0
-# What is probed (`bid probe --source`): the hazard reading the brakes use (with SC, the larger
-# of the head's and SC's), the head's alone, SC's alone, or the fine SC's alone (config.sc_fine);
-# the merged reading hides which of them sees and which reads wrongly.
-SOURCES = ("merged", "head", "SC", "SC_fine")
 # SC's presence logits (--sc-presence) are also read at these thresholds: one trained at a
 # positive weight w says yes where it judges the odds above 1 / (1 + w); a lower threshold is
 # what a larger w would have said, were the logit calibrated.
@@ -55,9 +51,8 @@ def _group(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, Any]
     median, beside their true `true_m`), and the same for the frames with one within CLOSE_M
     (`close_frames`, `seen_close`, `read_close_m`, `true_close_m`)."""
     found = hazard_detection(pred, target)
-    near = target >= 1.0 - NEAR_M / HAZARD_AHEAD_M
+    near, none = near_and_none(target)
     close = target >= 1.0 - CLOSE_M / HAZARD_AHEAD_M
-    none = target <= 0.0
     seen = pred >= SEEN_NEARNESS
 
     def share(k: int, rows: torch.Tensor, threshold: float) -> float | None:
@@ -95,8 +90,7 @@ def _logits(logit: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, An
     """Per kind of SC's presence logits (B, K) against the nearness targets: their `auc` (frames
     with one in the path within NEAR_M against those with none) and, at each of
     LOGIT_THRESHOLDS, the shares of those two kinds of frame the logit says yes to."""
-    near = target >= 1.0 - NEAR_M / HAZARD_AHEAD_M
-    none = target <= 0.0
+    near, none = near_and_none(target)
     out = {}
     for k, kind in enumerate(KINDS[:logit.shape[1]]):
         yes, no = logit[near[:, k], k].numpy(), logit[none[:, k], k].numpy()
@@ -120,15 +114,15 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     `_stop_line`). `second`: the second head's outputs (model.move_off_head; beside SC's, as the
     first head's are) in place of the first head's, against its own targets (with `bid train
     --second-bumper` its vehicle the nearer of the path's and the one ahead of the bumper).
-    `source` (SOURCES): the reading driving uses ("merged"), or with SC the head's alone (its
+    `source` (config.PROBE_SOURCES): the reading driving uses ("merged"), or with SC the head's alone (its
     pedestrian gated by its presence logit, as driving reads it), SC's alone (gated by its
     logits with --sc-presence; then also `logits`, _logits of SC's logits over all frames) or
     the fine SC's alone (config.sc_fine; gated by its logits, and `logits` too), while the ego
     stands too."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
-    if source not in SOURCES:
-        raise BidError(f"source is one of {', '.join(SOURCES)}; got {source!r}")
+    if source not in PROBE_SOURCES:
+        raise BidError(f"source is one of {', '.join(PROBE_SOURCES)}; got {source!r}")
     apart = source != "merged"
     if apart and second:
         raise BidError("--source reads the first head or SC apart, --second-head the second head: drop one")

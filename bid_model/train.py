@@ -293,7 +293,12 @@ def hazard_loss(pred: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.
                             green_weight, green_m, vehicle_moving_weight)
     if boost is not None:
         weight = weight * boost
-    return (weight * (pred.float() - (target if fit is None else fit)).abs()).sum() / weight.sum()
+    return _weighted_l1(pred.float(), target if fit is None else fit, weight)
+
+
+def _weighted_l1(pred: torch.Tensor, fit: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """|pred − fit| averaged with these weights."""
+    return (weight * (pred - fit).abs()).sum() / weight.sum()
 
 
 def presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: float = 1.0,
@@ -332,12 +337,18 @@ def head_presence_loss(out: torch.Tensor, target: torch.Tensor, pos_weight: floa
     weight = hazard_weights(target, pos_weight, turn_weight, command, moving_weight, speed_mps,
                             green_weight, green_m, vehicle_moving_weight)
     out = out.float()
-    others = (weight[:, 1:] * (out[:, 1:k] - fit[:, 1:]).abs()).sum() / weight[:, 1:].sum()
+    others = _weighted_l1(out[:, 1:k], fit[:, 1:], weight[:, 1:])
     present = fit[:, 0] >= SEEN_NEARNESS
     bce = nn.functional.binary_cross_entropy_with_logits(out[:, k], present.float(), reduction="none")
     presence = (weight[:, 0] * bce).sum() / weight[:, 0].sum()
     distance = (out[:, 0] - fit[:, 0]).abs()[present].mean() if present.any() else out[:, 0].sum() * 0.0
     return others + presence + distance
+
+
+def near_and_none(target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Masks over nearness targets (B, K): one in the path within NEAR_M, and none within
+    HAZARD_AHEAD_M: the two kinds of frame a hazard output is judged on."""
+    return target >= 1.0 - NEAR_M / HAZARD_AHEAD_M, target <= 0.0
 
 
 def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, float | None]]:
@@ -346,8 +357,7 @@ def hazard_detection(pred: torch.Tensor, target: torch.Tensor) -> dict[str, dict
     SEEN_NEARNESS, where --hazard-brake starts), and `seen_none`, the share of frames with none
     within HAZARD_AHEAD_M where it sees one all the same (None where no frame is of that kind)."""
     seen = pred.float() >= SEEN_NEARNESS
-    near = target >= 1.0 - NEAR_M / HAZARD_AHEAD_M
-    none = target <= 0.0
+    near, none = near_and_none(target)
 
     def share(k: int, rows: torch.Tensor) -> float | None:
         return float(seen[rows[:, k], k].float().mean()) if rows[:, k].any() else None
