@@ -428,7 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke runs)")
     ev.add_argument("--out", default=None, help="results folder (default results/TOWN_AGENT_DENSITY)")
     _add_ray_argument(ev, "With --record or --video, --out")
-    ev.add_argument("--compare", nargs="+", default=None, metavar="RESULTS", help="print results folders side by side")
+    ev.add_argument("--compare", nargs="+", default=None, metavar="RESULTS",
+                    help="print results folders side by side, then each against the first episode by "
+                         "episode (paired successes, sign test p, mean DS difference)")
     ev.add_argument("--json", action="store_true")
     ev.set_defaults(func=_evaluate)
 

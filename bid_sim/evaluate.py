@@ -24,6 +24,7 @@ import hashlib
 import importlib
 import importlib.metadata
 import json
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -456,7 +457,8 @@ def summary_markdown(summary: dict) -> str:
 
 
 def compare(folders: list[str]) -> str:
-    """A side-by-side table of several results folders (whole-run figures per density)."""
+    """A side-by-side table of several results folders (whole-run figures per density), then
+    each folder after the first against the first, episode by episode (paired_table)."""
     cols, rows = [], {}
     for f in folders:
         path = Path(f) / "summary.json"
@@ -479,6 +481,53 @@ def compare(folders: list[str]) -> str:
     lines = ["| group | metric | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
     for (group, key), vals in rows.items():
         lines.append(f"| {group} | {key} | " + " | ".join(vals.get(c, "—") for c in cols) + " |")
+    paired = [paired_table(folders[0], f) for f in folders[1:]]
+    return "\n".join(lines) + "".join(f"\n\n{t}" for t in paired if t)
+
+
+def sign_test_p(wins: int, losses: int) -> float:
+    """Two-sided exact sign test (McNemar's, exact) of wins against losses of paired episodes:
+    the chance of a split at least this uneven were either side as likely to win each."""
+    n = wins + losses
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(wins, losses) + 1)) / 2 ** n
+    return min(1.0, 2.0 * tail)
+
+
+def paired_table(base: str, other: str, listed: int = 20) -> str:
+    """The episodes two results folders of one town both ran (the same density, weather, route
+    and seed: the same traffic), success against success: how many each alone succeeds in, the
+    sign test's p of that split, the mean driving-score difference with its standard error, and
+    (up to `listed`) those episodes with the failing side's first cause. Empty where the folders share no episode or are of other towns."""
+    a_cfg, b_cfg = (json.loads((Path(f) / "config.json").read_text()) for f in (base, other))
+    if a_cfg.get("town") != b_cfg.get("town"):
+        return ""
+    a, b = ({ln["key"]: ln for ln in read_lines(Path(f) / "episodes.jsonl")} for f in (base, other))
+    keys = [k for k in a if k in b]
+    if not keys:
+        return ""
+    won = {k: (a[k]["metrics"]["SR"] >= 100.0, b[k]["metrics"]["SR"] >= 100.0) for k in keys}
+    only_a = [k for k, (x, y) in won.items() if x and not y]
+    only_b = [k for k, (x, y) in won.items() if y and not x]
+    both = sum(x and y for x, y in won.values())
+    ds = [b[k]["metrics"]["DS"] - a[k]["metrics"]["DS"] for k in keys]
+    mean = sum(ds) / len(ds)
+    se = (sum((d - mean) ** 2 for d in ds) / (len(ds) - 1) / len(ds)) ** 0.5 if len(ds) > 1 else 0.0
+    an, bn = Path(base).name, Path(other).name
+    lines = [f"## Episode by episode: {bn} against {an}", "",
+             f"| paired episodes | both succeed | both fail | only {an} | only {bn} | sign test p | "
+             f"DS {bn} − {an} (mean ± s.e.) |",
+             "|---|---|---|---|---|---|---|",
+             f"| {len(keys)} | {both} | {len(keys) - both - len(only_a) - len(only_b)} | {len(only_a)} | "
+             f"{len(only_b)} | {sign_test_p(len(only_a), len(only_b)):.2f} | {mean:+.1f} ± {se:.1f} |"]
+    changed = only_a + only_b
+    if changed:
+        lines += ["", f"| episode | {an} | {bn} |", "|---|---|---|"]
+        for k in changed[:listed]:
+            lines.append(f"| {k} | {failure_cause(a[k]) or 'success'} | {failure_cause(b[k]) or 'success'} |")
+        if len(changed) > listed:
+            lines.append(f"| … {len(changed) - listed} more | | |")
     return "\n".join(lines)
 
 

@@ -8,13 +8,16 @@ import pytest
 
 from bid_sim.cli import main
 from bid_sim.evaluate import (
+    compare,
     config_diff,
     evaluate,
     failure_cause,
     load_agent,
     outcome_tables,
     outcomes,
+    paired_table,
     read_lines,
+    sign_test_p,
     summary_markdown,
 )
 
@@ -192,6 +195,41 @@ def test_compare(serial, tmp_path, capsys):
     rows = [line for line in capsys.readouterr().out.splitlines() if "| standing, nothing near s |" in line]
     assert len(rows) == 2 and all(r.endswith(" | — |") and "| — | — |" not in r for r in rows)
     assert main(["evaluate", "--compare", str(tmp_path / "none")]) == 2
+
+
+def test_compare_pairs_the_episodes_both_ran(serial, tmp_path):
+    """Episode by episode against the first folder: the same keys, success against success, the
+    sign test of the split and the mean DS difference; nothing paired across towns."""
+    out, _ = serial
+    lines = read_lines(out / "episodes.jsonl")
+    same = paired_table(str(out), str(out))
+    wins = sum(ln["metrics"]["SR"] >= 100.0 for ln in lines)
+    assert f"| 2 | {wins} | {2 - wins} | 0 | 0 | 1.00 | +0.0 ± 0.0 |" in same
+    flipped = tmp_path / "flipped"
+    shutil.copytree(out, flipped)
+    first = lines[0]
+    succeeded = first["metrics"]["SR"] >= 100.0
+    first = {**first, "status": "timeout" if succeeded else "completed",
+             "metrics": {**first["metrics"], "SR": 0.0 if succeeded else 100.0,
+                         "DS": first["metrics"]["DS"] - 10.0}}
+    (flipped / "episodes.jsonl").write_text(json.dumps(first) + "\n")  # and the second not run
+    table = paired_table(str(out), str(flipped))
+    split = "| 1 | 0 | 0 | 1 | 0 |" if succeeded else "| 1 | 0 | 0 | 0 | 1 |"
+    assert f"{split} 1.00 | -10.0 ± 0.0 |" in table
+    before = failure_cause(lines[0]) or "success"
+    assert f"| {first['key']} | {before} | {failure_cause(first) or 'success'} |" in table
+    assert "## Episode by episode: flipped against " in compare([str(out), str(flipped)])
+    other_town = tmp_path / "other_town"
+    shutil.copytree(out, other_town)
+    cfg = json.loads((other_town / "config.json").read_text())
+    (other_town / "config.json").write_text(json.dumps({**cfg, "town": "Town01"}))
+    assert paired_table(str(out), str(other_town)) == ""
+
+
+def test_sign_test():
+    assert sign_test_p(0, 0) == 1.0 and sign_test_p(10, 10) == 1.0
+    assert sign_test_p(0, 5) == pytest.approx(2 / 32) and sign_test_p(5, 0) == sign_test_p(0, 5)
+    assert sign_test_p(1, 9) == pytest.approx(2 * 11 / 1024)
 
 
 @pytest.mark.parametrize(("agent", "words"), [("pilot", "unknown agent 'pilot'"),
