@@ -114,11 +114,11 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     `_stop_line`). `second`: the second head's outputs (model.move_off_head; beside SC's, as the
     first head's are) in place of the first head's, against its own targets (with `bid train
     --second-bumper` its vehicle the nearer of the path's and the one ahead of the bumper).
-    `source` (config.PROBE_SOURCES): the reading driving uses ("merged"), or with SC the head's alone (its
-    pedestrian gated by its presence logit, as driving reads it), SC's alone (gated by its
-    logits with --sc-presence; then also `logits`, _logits of SC's logits over all frames) or
-    the fine SC's alone (config.sc_fine; gated by its logits, and `logits` too), while the ego
-    stands too."""
+    `source` (config.PROBE_SOURCES): the reading driving uses ("merged"), or with SC the head's
+    alone (its pedestrian gated by its presence logit, as driving reads it), SC's alone (gated
+    by its logits with --sc-presence; then also `logits`, _logits of SC's logits over all
+    frames) or the fine SC's alone (config.sc_fine; gated by its logits, and `logits` too),
+    while the ego stands too."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     if source not in PROBE_SOURCES:

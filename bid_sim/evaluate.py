@@ -499,8 +499,10 @@ def paired_table(base: str, other: str, listed: int = 20) -> str:
     """The episodes two results folders of one town both ran (the same density, weather, route
     and seed: the same traffic), success against success: how many each alone succeeds in, the
     sign test's p of that split, the mean driving-score difference with its standard error, and
-    (up to `listed`) those episodes with the failing side's first cause. Empty where the folders share no episode or are of other towns."""
-    a_cfg, b_cfg = (json.loads((Path(f) / "config.json").read_text()) for f in (base, other))
+    (up to `listed`) those episodes with the failing side's first cause. Empty where the folders
+    share no episode or are of other towns."""
+    a_cfg, b_cfg = (json.loads(p.read_text()) if (p := Path(f) / "config.json").exists() else {}
+                    for f in (base, other))
     if a_cfg.get("town") != b_cfg.get("town"):
         return ""
     a, b = ({ln["key"]: ln for ln in read_lines(Path(f) / "episodes.jsonl")} for f in (base, other))
