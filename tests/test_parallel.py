@@ -44,7 +44,8 @@ def test_caching_frames_from_a_script_without_the_guard_leaves_no_files(recorded
     must refuse before it writes a cache-sized file of its own."""
     folder = tmp_path / "rec"
     shutil.copytree(recorded, folder, ignore=shutil.ignore_patterns(".bid_cache"))
-    done = _script(tmp_path, "from bid_model.recordings import open_every_frame\n"
+    done = _script(tmp_path, "import os\nos.cpu_count = lambda: 2  # two workers on any machine\n"
+                             "from bid_model.recordings import open_every_frame\n"
                              f"open_every_frame({str(folder)!r}, (24, 72))\n")
     assert done.returncode != 0
     assert 'if __name__ == "__main__":' in done.stderr
