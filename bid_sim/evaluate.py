@@ -495,6 +495,12 @@ def sign_test_p(wins: int, losses: int) -> float:
     return min(1.0, 2.0 * tail)
 
 
+def p_text(p: float) -> str:
+    """A p value as the paired table prints it: two decimals, two significant digits below 0.01
+    (a lopsided split reads 0.0026, not 0.00)."""
+    return f"{p:.2f}" if p >= 0.01 else f"{p:.2g}"
+
+
 def paired_table(base: str, other: str, listed: int = 20) -> str:
     """The episodes two results folders of one town both ran (the same density, weather, route
     and seed: the same traffic), success against success: how many each alone succeeds in, the
@@ -522,7 +528,7 @@ def paired_table(base: str, other: str, listed: int = 20) -> str:
              f"DS {bn} − {an} (mean ± s.e.) |",
              "|---|---|---|---|---|---|---|",
              f"| {len(keys)} | {both} | {len(keys) - both - len(only_a) - len(only_b)} | {len(only_a)} | "
-             f"{len(only_b)} | {sign_test_p(len(only_a), len(only_b)):.2f} | {mean:+.1f} ± {se:.1f} |"]
+             f"{len(only_b)} | {p_text(sign_test_p(len(only_a), len(only_b)))} | {mean:+.1f} ± {se:.1f} |"]
     changed = only_a + only_b
     if changed:
         lines += ["", f"| episode | {an} | {bn} |", "|---|---|---|"]

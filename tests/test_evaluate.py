@@ -15,6 +15,7 @@ from bid_sim.evaluate import (
     load_agent,
     outcome_tables,
     outcomes,
+    p_text,
     paired_table,
     read_lines,
     sign_test_p,
@@ -230,6 +231,8 @@ def test_sign_test():
     assert sign_test_p(0, 0) == 1.0 and sign_test_p(10, 10) == 1.0
     assert sign_test_p(0, 5) == pytest.approx(2 / 32) and sign_test_p(5, 0) == sign_test_p(0, 5)
     assert sign_test_p(1, 9) == pytest.approx(2 * 11 / 1024)
+    # 17 against 3: p = 2 (1 + 20 + 190 + 1140) / 2^20, printed with its digits, not as 0.00
+    assert p_text(sign_test_p(17, 3)) == "0.0026" and p_text(0.61) == "0.61" and p_text(1.0) == "1.00"
 
 
 @pytest.mark.parametrize(("agent", "words"), [("pilot", "unknown agent 'pilot'"),
