@@ -38,7 +38,7 @@ from bid_sim import __version__
 from bid_sim import metrics as m
 from bid_sim.agents import AGENTS, make_agent
 from bid_sim.errors import BidError, reason
-from bid_sim.parallel import run_parallel
+from bid_sim.parallel import WorkerDied, run_parallel
 from bid_sim.routes import load_routes
 from bid_sim.towns import CROSSING_WIDTH_M, crossing_words, net_tag, resolve_town
 from bid_sim.weather import check_weather
@@ -315,6 +315,9 @@ def evaluate(town: str, densities: tuple[str, ...], weathers: tuple[str, ...], s
                     initializer=_init_worker,
                     initargs=(agent, str(Path(checkpoint).resolve()) if checkpoint else None, options),
                     shared=out if record or video else None)  # only files need a shared --out
+    except WorkerDied as e:  # no episode can go on
+        raise BidError(f"{e}; the finished episodes ({len(done)}) are kept in {lines_path}; "
+                       "rerun the same command to go on") from e
     finally:
         bar.close()
     if failed:

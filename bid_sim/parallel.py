@@ -19,6 +19,10 @@ from bid_sim.errors import BidError
 GUARD_HINT = 'a script that calls this needs its work under `if __name__ == "__main__":`'
 
 
+class WorkerDied(BidError):
+    """A worker process died before it finished: the pool cannot run the items left."""
+
+
 def require_main_process() -> None:
     """BidError in a worker process: there, starting workers means a script without the guard
     was run again in a worker, and would start workers without end."""
@@ -33,8 +37,10 @@ def run_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
     """Calls fn(item) for every item on up to `workers` processes (in this process when
     workers <= 1 or there is one item) and reports each as it completes: on_result(item,
     result), or on_error(item, exception) when given (else the exception propagates and the
-    items not yet started are cancelled). fn, items and initargs must pickle. A worker process
-    refuses to start workers of its own (GUARD_HINT)."""
+    items not yet started are cancelled). A worker process that dies (out of memory, a crash,
+    or one that ran a script without the `__main__` guard) breaks the pool: that is one
+    WorkerDied, not on_error for every item left. fn, items and initargs must pickle. A worker
+    process refuses to start workers of its own (GUARD_HINT)."""
     if workers <= 1 or len(items) <= 1:
         if initializer is not None:
             initializer(*initargs)
@@ -59,6 +65,9 @@ def run_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int,
                 for fut in ready:
                     try:
                         result = fut.result()
+                    except BrokenProcessPool as e:
+                        raise WorkerDied("a worker process died before it finished "
+                                         f"(out of memory, or {GUARD_HINT})") from e
                     except Exception as e:
                         if on_error is None:
                             raise
@@ -78,11 +87,8 @@ def _numbered(fn: Callable[[Any], Any], numbered: tuple[int, Any]) -> tuple[int,
 def map_parallel(fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> list[Any]:
     """[fn(item) for item in items], on up to `workers` processes as run_parallel runs them; a
     worker process that dies (out of memory, a crash, or one that ran a script without the
-    `__main__` guard) is one BidError, not a traceback from the process pool."""
+    `__main__` guard) is one WorkerDied (run_parallel), not a traceback from the process pool."""
     results: dict[int, Any] = {}
-    try:
-        run_parallel(partial(_numbered, fn), list(enumerate(items)), workers,
-                     lambda _item, done: results.__setitem__(*done))
-    except BrokenProcessPool as e:
-        raise BidError(f"a worker process died before it finished (out of memory, or {GUARD_HINT})") from e
+    run_parallel(partial(_numbered, fn), list(enumerate(items)), workers,
+                 lambda _item, done: results.__setitem__(*done))
     return [results[i] for i in range(len(items))]

@@ -22,7 +22,7 @@ from bid_sim import __version__
 from bid_sim.agents import make_agent
 from bid_sim.ego import DT_S
 from bid_sim.errors import BidError, reason
-from bid_sim.parallel import run_parallel
+from bid_sim.parallel import WorkerDied, run_parallel
 from bid_sim.perturb import LATE_KINDS, MAX_STALL_STEPS, STALL_STEPS, Dagger, Perturbed
 from bid_sim.recording import EpisodeWriter, partial_path, read_facts
 from bid_sim.routes import RouteSpec, generate_routes
@@ -321,6 +321,9 @@ def record(town: str, episodes: int, weathers: tuple[str, ...], densities: tuple
             run_ray(partial(record_episode, out=out.resolve()), todo, ray_address,
                     lambda spec, summary: finished(summary),
                     on_error=lambda spec, e: failed.append((spec.name, reason(e))), shared=out)
+    except WorkerDied as e:  # no episode can go on
+        raise BidError(f"{e}; the {len(done)} episodes finished are kept in {out}; "
+                       "rerun the same command to record the rest") from e
     finally:
         bar.close()
     wall = time.perf_counter() - t0

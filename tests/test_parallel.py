@@ -1,6 +1,8 @@
-"""Work spread over spawned worker processes: results in order, and a script without the
-`__main__` guard stopped with one clear error, not workers starting workers without end."""
+"""Work spread over spawned worker processes: results in order, a worker that dies one clear
+error, and a script without the `__main__` guard stopped with one, not workers starting
+workers without end."""
 
+import os
 import shutil
 import subprocess
 import sys
@@ -9,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from bid_sim.errors import BidError
-from bid_sim.parallel import map_parallel, require_main_process
+from bid_sim.parallel import WorkerDied, map_parallel, require_main_process, run_parallel
 
 
 def test_map_parallel_keeps_the_order_of_its_items():
@@ -62,3 +64,28 @@ def _refusal(_item) -> str:
     except BidError as e:
         return "refused" if "__main__" in str(e) else str(e)
     return "started"
+
+
+def test_a_worker_that_dies_is_one_error_not_one_per_item_left():
+    """An episode's error goes to on_error and the others go on; a worker process that dies
+    (out of memory, a crash) leaves no pool to run them: one WorkerDied."""
+    done, errors = [], []
+    run_parallel(_fails_on_two, [1, 2, 3], 2, lambda item, result: done.append(result),
+                 on_error=lambda item, e: errors.append((item, str(e))))
+    assert (sorted(done), errors) == ([1, 3], [(2, "two")])
+    with pytest.raises(WorkerDied, match="worker process died"):
+        run_parallel(_dies_on_two, [1, 2, 3, 4, 5, 6], 2, lambda item, result: done.append(result),
+                     on_error=lambda item, e: errors.append((item, str(e))))
+    assert errors == [(2, "two")]
+
+
+def _fails_on_two(item: int) -> int:
+    if item == 2:
+        raise ValueError("two")
+    return item
+
+
+def _dies_on_two(item: int) -> int:
+    if item == 2:
+        os._exit(3)
+    return item
