@@ -255,7 +255,7 @@ def _probe(args: argparse.Namespace) -> int:
     from bid_model.probe import probe_hazards, probe_table, write_probe
 
     result = probe_hazards(args.checkpoint, args.data, every=args.every, threads=args.threads,
-                           second=args.second_head, source=args.source)
+                           second=args.second_head, source=args.source, hazard_ahead_s=args.hazard_ahead)
     print(probe_table(result))
     if args.out:
         out = write_probe(result, args.out)
@@ -336,5 +336,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                     help="with SC (--hazard-sc): probe the reading driving uses (merged, the default), the "
                          "head's alone, SC's alone (with --sc-presence also its logits at lower thresholds) "
                          "or the fine SC's alone (bid graft; standing too, and its logits)")
+    pr.add_argument("--hazard-ahead", type=float, default=0.0, metavar="S",
+                    help="count a pedestrian in the path also where she will be within S seconds, as "
+                         "`bid train --hazard-ahead` does (default 0: where she is)")
     pr.add_argument("--out", default=None, metavar="PATH", help="also write PATH.json and PATH.md")
     pr.set_defaults(func=_probe)

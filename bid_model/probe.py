@@ -25,7 +25,13 @@ from bid_model.config import KINDS, MOVING_MPS, PATH_KINDS, PROBE_SOURCES
 from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.recordings import open_every_frame
-from bid_model.train import hazard_detection, near_and_none, ranking_auc, second_targets
+from bid_model.train import (
+    MAX_HAZARD_AHEAD_S,
+    hazard_detection,
+    near_and_none,
+    ranking_auc,
+    second_targets,
+)
 from bid_sim.errors import BidError
 
 # Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
@@ -103,7 +109,7 @@ def _logits(logit: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, An
 
 def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,
                   batch_size: int = 64, threads: int | None = None, second: bool = False,
-                  source: str = "merged") -> dict[str, Any]:
+                  source: str = "merged", hazard_ahead_s: float = 0.0) -> dict[str, Any]:
     """The hazard outputs of `checkpoint` on every `every`-th frame of the recordings in
     `folder`: per kind, `seen_near` (of the frames with one in the path within NEAR_M, the share
     read at SEEN_NEARNESS or more, where the brakes start), `seen_none` (of those with none within
@@ -118,9 +124,13 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     alone (its pedestrian gated by its presence logit, as driving reads it), SC's alone (gated
     by its logits with --sc-presence; then also `logits`, _logits of SC's logits over all
     frames) or the fine SC's alone (config.sc_fine; gated by its logits, and `logits` too),
-    while the ego stands too."""
+    while the ego stands too. `hazard_ahead_s`: a pedestrian counts in the path also where the
+    recording shows her in it within that many seconds (`bid train --hazard-ahead`), so a
+    sighting of one about to walk in is right, not wrong."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
+    if not 0 <= hazard_ahead_s <= MAX_HAZARD_AHEAD_S:
+        raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {hazard_ahead_s}")
     if source not in PROBE_SOURCES:
         raise BidError(f"source is one of {', '.join(PROBE_SOURCES)}; got {source!r}")
     apart = source != "merged"
@@ -139,7 +149,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
         raise BidError(f"{checkpoint} has no fine SC (bid graft --fine-sc); probe --source SC or merged")
     bumper_m = config.train.second_bumper_m if second else 0.0
     data, facts = open_every_frame(folder, config.model.input_hw, crossing=config.model.hazard_crossing,
-                                   bumper_m=bumper_m)
+                                   bumper_m=bumper_m, hazard_ahead_s=hazard_ahead_s)
     rows = np.arange(0, len(data), every)
     preds, logits, targets, commands, episodes, speeds, greens = [], [], [], [], [], [], []
     with torch.inference_mode():
@@ -187,6 +197,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             **({"source": source} if apart else {}),
             **({"logits": _logits(torch.cat(logits), target)} if logits else {}),
             **({"bumper_m": bumper_m} if bumper_m > 0 else {}),
+            **({"hazard_ahead_s": hazard_ahead_s} if hazard_ahead_s > 0 else {}),
             "folder": str(folder), "towns": towns, "recordings": len(facts),
             "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
 
@@ -205,6 +216,8 @@ def probe_table(result: dict[str, Any]) -> str:
     head += " (its second head)" if result.get("head") == "second" else ""
     if result.get("bumper_m"):
         head += f" (vehicles also within {result['bumper_m']:g} m ahead of the bumper)"
+    if result.get("hazard_ahead_s"):
+        head += f" (pedestrians also where they will be within {result['hazard_ahead_s']:g} s)"
     lines = [f"# Hazard outputs of {result['checkpoint']}{head} on {result['folder']} "
              f"({', '.join(result['towns'])}; {result['recordings']} recordings, {result['frames']} frames"
              f"{'' if result['every'] == 1 else ', one in ' + str(result['every'])})", ""]

@@ -468,17 +468,19 @@ def bumper_targets(index: _Index, cache_dir: Path | None, near: np.ndarray, ahea
 
 
 def open_every_frame(folder: str | os.PathLike, frame_hw: tuple[int, int], crossing: bool = False,
-                     cache: bool = True, bumper_m: float = 0.0) -> tuple[RecordingDataset, list[dict]]:
+                     cache: bool = True, bumper_m: float = 0.0,
+                     hazard_ahead_s: float = 0.0) -> tuple[RecordingDataset, list[dict]]:
     """Every frame of the recordings in `folder`, in (file, step) order, as recorded (no split,
-    no rebalancing), with the hazard targets (`open_recordings(hazard=True)`; with `crossing`
-    the fourth too), and the facts of each recording (a sample's "episode" indexes them): to
-    measure a trained model on recordings it never saw, another town's or weather's. With
-    `bumper_m` the samples hold "vehicle_bumper" too (`open_recordings`)."""
+    no rebalancing), with the hazard targets (`open_recordings(hazard=True)`, pedestrians also
+    where they will be within `hazard_ahead_s`; with `crossing` the fourth too), and the facts of
+    each recording (a sample's "episode" indexes them): to measure a trained model on recordings
+    it never saw, another town's or weather's. With `bumper_m` the samples hold
+    "vehicle_bumper" too (`open_recordings`)."""
     folder = Path(folder)
     index, _ = _open_index(folder, cache)
     cache_path = build_cache(index, folder, tuple(frame_hw)) if cache else None
     cache_dir = folder / CACHE_DIR if cache else None
-    near = _hazard_targets(index, cache_dir, 0.0, crossing)
+    near = _hazard_targets(index, cache_dir, hazard_ahead_s, crossing)
     bumper = bumper_targets(index, cache_dir, near, bumper_m) if bumper_m > 0 else None
     return (RecordingDataset(index, np.arange(len(index.step)), frame_hw, cache_path, hazard=near, bumper=bumper),
             list(index.facts))

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bid_model.checkpoint import load_checkpoint, load_model
-from bid_model.config import MOVING_MPS
+from bid_model.config import MOVING_MPS, PATH_KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.probe import CLOSE_M, _group, probe_hazards, probe_table
@@ -47,6 +47,33 @@ def test_every_frame_is_every_recorded_frame_in_order_with_the_training_targets(
         assert sample["step"] == int(train.index.step[i]) and sample["speed_mps"] == float(train.index.speed[i])
     j = int(val.rows[0])
     assert torch.equal(every[j]["frame"], val[0]["frame"]) and torch.equal(every[j]["prev_frame"], val[0]["prev_frame"])
+
+
+def test_probe_can_count_pedestrians_where_they_will_be(recorded, hazard_run, one_thread, monkeypatch):
+    """`bid probe --hazard-ahead S`: the targets `bid train --hazard-ahead S` fits (hazards'
+    tests show what they count), so a sighting of a pedestrian about to walk into the path
+    counts as right."""
+    from bid_model import recordings
+
+    asked = []
+    real = recordings.index_hazards
+    monkeypatch.setattr(recordings, "index_hazards",
+                        lambda *a, **kw: asked.append(kw.get("ped_ahead_s")) or real(*a, **kw))
+    ahead, _ = open_every_frame(recorded, (32, 96), hazard_ahead_s=1.5)
+    train, _, _ = open_recordings(recorded, (32, 96), 0.5, 0, hazard=True, hazard_ahead_s=1.5)
+    assert np.array_equal(ahead.hazard, train.hazard) and asked == [1.5, 1.5]
+    checkpoint = hazard_run / "hz" / "last.pt"
+    plain = probe_hazards(checkpoint, recorded, every=2)
+    later = probe_hazards(checkpoint, recorded, every=2, hazard_ahead_s=1.5)
+    assert asked[2:] == [0.0, 1.5]
+    assert later["hazard_ahead_s"] == 1.5 and "hazard_ahead_s" not in plain
+    ped = PATH_KINDS.index("pedestrian")
+    near = ahead.hazard[::2, ped] >= 1 - NEAR_M / HAZARD_AHEAD_M
+    assert later["all"]["pedestrian"]["near_frames"] == int(near.sum())
+    assert later["all"]["vehicle"] == plain["all"]["vehicle"]
+    assert "pedestrians also where they will be within 1.5 s" in probe_table(later)
+    with pytest.raises(BidError, match="--hazard-ahead is in seconds"):
+        probe_hazards(checkpoint, recorded, hazard_ahead_s=-1)
 
 
 def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazard_run, one_thread):
