@@ -70,6 +70,8 @@ START_CAP_M = 12.0  # how far a start is capped unless told (Town02: past the st
 # `move_off_braked`: a stop counts as the brakes' when they overrode a control head asking for no
 # braking (accel >= 0) within this long before the ego came to stand.
 BRAKED_STOP_S = 1.0
+# `sc_logit`: a presence logit past this says yes (odds 1 to 20 000) or no to everything.
+MAX_SC_LOGIT = 10.0
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
@@ -295,6 +297,10 @@ class BIDAgent:
     (full braking) unless moving off. The light brake asks nothing below BIND_SHARE, and the control
     head crept up from 2.5 m to 1.3 m short, where frame t alone read a red light 0.46-0.89 and a
     second of reads below CLEAR_READ moved the ego off into it (docs/experiments.md).
+    sc_logit: with SC's presence logits (bid train --sc-presence), SC's pedestrian counts only where
+    its logit is above this (0, the config's, when None; ModelConfig.sc_logit). Fitted with weight
+    4 on pedestrians and look-ahead targets, ahead46 said yes on 10-18 % of frames with none in
+    the path (docs/experiments.md).
     """
 
     uses_camera = True
@@ -309,7 +315,8 @@ class BIDAgent:
                  turn_speed: float = 0.0, move_off_sc: bool = False, move_off_light: bool = False,
                  vehicle_second_head: bool = False, light_still: bool = False,
                  light_short: float | None = None, move_off_green: float | None = None,
-                 green_far: float | None = None, light_hold: bool = False, vehicle_hold: float = 0.0):
+                 green_far: float | None = None, light_hold: bool = False, vehicle_hold: float = 0.0,
+                 sc_logit: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -318,6 +325,14 @@ class BIDAgent:
                                f"or drop {name}")
         if sc_still and sc_still_moving:
             raise BidError("sc_still reads SC still at every step, sc_still_moving only while moving; keep one")
+        if sc_logit is not None:
+            if not self.config.model.sc_presence:
+                raise BidError(f"sc_logit is where SC's presence logit says yes; {checkpoint}'s SC has none "
+                               "(bid train --hazard-sc --sc-presence), or drop it")
+            if not -MAX_SC_LOGIT <= sc_logit <= MAX_SC_LOGIT:
+                raise BidError(f"sc_logit is a logit from {-MAX_SC_LOGIT:g} to {MAX_SC_LOGIT:g}; got {sc_logit}")
+            model_config = dataclasses.replace(self.config.model, sc_logit=float(sc_logit))
+            self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)
         if sc_still:
             model_config = dataclasses.replace(self.config.model, sc_still=True)
             self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)

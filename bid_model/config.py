@@ -34,7 +34,7 @@ INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
 # Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
-READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed", "fine_moving"})
+READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed", "fine_moving", "sc_logit"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -102,6 +102,10 @@ class ModelConfig:
     # its nearness (areas.SC): it reads a nearness only where it says yes, rather than the
     # blend of "none" and "near" an L1 fit on both gives an actor it is unsure of.
     sc_presence: bool = False
+    # SC's pedestrian counts only where its presence logit is above this: at 0, where it judges
+    # the odds above 1 / (1 + w) for its training's weight w (train.presence_loss); higher,
+    # surer (a reading, not a weight: `bid evaluate --sc-logit`; the vehicle's stays at 0).
+    sc_logit: float = 0.0
     # SC reads frame t alone, its change since t−1 zeroed: that change is the ego's own motion as
     # much as the actors', and SC fitted on it read "moving, so nothing in the path" (on a held-out
     # Town01 seed it saw 12 % of a moving ego's pedestrians, 48 % with the change zeroed;
@@ -162,6 +166,8 @@ class ModelConfig:
             raise ValueError("hazard_sc (SC) reads beside the hazard head: it needs hazard")
         if self.sc_presence and not self.hazard_sc:
             raise ValueError("sc_presence is a part of SC: it needs hazard_sc")
+        if self.sc_logit and not self.sc_presence:
+            raise ValueError("sc_logit is where SC's presence logit says yes: it needs sc_presence")
         if self.sc_still and not self.hazard_sc:
             raise ValueError("sc_still is how SC reads: it needs hazard_sc")
         if not (isinstance(self.sc_scale, int) and 1 <= self.sc_scale <= 4):

@@ -39,6 +39,7 @@ from bid_model.train import (
     warm_start_crossing,
     warm_start_move_off,
 )
+from bid_sim.cli import _drive_options, build_parser
 from bid_sim.cli import main as bid
 from bid_sim.errors import BidError
 
@@ -1008,6 +1009,23 @@ def test_sc_presence_reads_a_nearness_only_where_it_says_one_is_in_the_path(reco
     assert bid([*base, "--hazard", "1", "--sc-presence", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip()
     assert "add --hazard-sc" in err and "\n" not in err
+
+    # `bid evaluate --sc-logit T`: SC's pedestrian counts only where its logit is above T, its vehicle above 0.
+    agent = BIDAgent(tmp_path / "pr" / "last.pt", hazard_brake=1.0, sc_logit=1.0)
+    assert agent.model.config.sc_logit == 1.0 and agent.config.model.sc_logit == 1.0
+    columns = torch.tensor([[0.0, 0.0, 0.0, 0.5, 0.75, -1.0, 0.5],
+                            [0.0, 0.0, 0.0, 0.5, 0.75, 0.5, 0.5],
+                            [0.0, 0.0, 0.0, 0.5, 0.75, 1.5, -1.0]])
+    assert agent.model.sc_near(columns).tolist() == [[0.0, 0.75], [0.0, 0.75], [0.5, 0.0]]
+    assert BIDAgent(tmp_path / "pr" / "last.pt").model.sc_near(columns).tolist() == [[0.0, 0.75], [0.5, 0.75], [0.5, 0.0]]
+    for checkpoint, logit, says in ((tmp_path / "sc" / "last.pt", 1.0, "has none"),
+                                    (tmp_path / "pr" / "last.pt", 11.0, "a logit from -10 to 10")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(checkpoint, sc_logit=logit)
+    with pytest.raises(ValueError, match="needs sc_presence"):
+        dataclasses.replace(load_model(tmp_path / "sc" / "last.pt")[1].model, sc_logit=1.0)
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--sc-logit", "1.5"])
+    assert _drive_options(args, None) == {"sc_logit": 1.5}
 
 
 def tiny_runs_and_inputs(*runs):
