@@ -44,7 +44,7 @@ CLOSE_M = 4.0
 # positive weight w says yes where it judges the odds above 1 / (1 + w); a lower threshold is
 # what a larger w would have said, were the logit calibrated, a higher one a smaller w (what
 # `bid evaluate --sc-logit` reads the pedestrian's at).
-LOGIT_THRESHOLDS = (2.0, 1.0, 0.0, -0.5, -1.0, -2.0)
+LOGIT_THRESHOLDS = (2.0, 1.0, 0.5, 0.0, -0.5, -1.0, -2.0)
 
 
 def _median_m(nearness: torch.Tensor) -> float | None:
