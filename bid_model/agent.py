@@ -327,8 +327,8 @@ class BIDAgent:
             raise BidError("sc_still reads SC still at every step, sc_still_moving only while moving; keep one")
         if sc_logit is not None:
             if not self.config.model.sc_presence:
-                raise BidError(f"sc_logit is where SC's presence logit says yes; {checkpoint}'s SC has none "
-                               "(bid train --hazard-sc --sc-presence), or drop it")
+                raise BidError(f"sc_logit is where SC's presence logit says yes; {checkpoint}'s SC has none: "
+                               "train one with --hazard-sc --sc-presence, or drop it")
             if not -MAX_SC_LOGIT <= sc_logit <= MAX_SC_LOGIT:
                 raise BidError(f"sc_logit is a logit from {-MAX_SC_LOGIT:g} to {MAX_SC_LOGIT:g}; got {sc_logit}")
             model_config = dataclasses.replace(self.config.model, sc_logit=float(sc_logit))
