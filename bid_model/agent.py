@@ -331,10 +331,11 @@ class BIDAgent:
                                "train one with --hazard-sc --sc-presence, or drop it")
             if not -MAX_SC_LOGIT <= sc_logit <= MAX_SC_LOGIT:
                 raise BidError(f"sc_logit is a logit from {-MAX_SC_LOGIT:g} to {MAX_SC_LOGIT:g}; got {sc_logit}")
-            model_config = dataclasses.replace(self.config.model, sc_logit=float(sc_logit))
-            self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)
-        if sc_still:
-            model_config = dataclasses.replace(self.config.model, sc_still=True)
+        # How SC reads (config's READ_FIELDS), set on the loaded model's config.
+        reads = {**({"sc_logit": float(sc_logit)} if sc_logit is not None else {}),
+                 **({"sc_still": True} if sc_still else {})}
+        if reads:
+            model_config = dataclasses.replace(self.config.model, **reads)
             self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)
         # With sc_still_moving the model's config is swapped per step: SC's reading is the config's.
         self._sc_configs = ((self.config.model, dataclasses.replace(self.config.model, sc_still=True))

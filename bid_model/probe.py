@@ -26,7 +26,7 @@ from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import AT_LINE_M, HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
 from bid_model.recordings import open_every_frame
 from bid_model.train import (
-    MAX_HAZARD_AHEAD_S,
+    check_hazard_ahead,
     hazard_detection,
     near_and_none,
     ranking_auc,
@@ -130,8 +130,7 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     sighting of one about to walk in is right, not wrong."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
-    if not 0 <= hazard_ahead_s <= MAX_HAZARD_AHEAD_S:
-        raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {hazard_ahead_s}")
+    check_hazard_ahead(hazard_ahead_s)
     if source not in PROBE_SOURCES:
         raise BidError(f"source is one of {', '.join(PROBE_SOURCES)}; got {source!r}")
     apart = source != "merged"

@@ -92,6 +92,12 @@ METRIC_COLUMNS = ("epoch", "train_loss", "val_loss", "val_mae_steer", "val_mae_a
 # --- pieces ----------------------------------------------------------------------------------
 
 
+def check_hazard_ahead(seconds: float) -> None:
+    """BidError unless `seconds` is a --hazard-ahead look-ahead, 0 to MAX_HAZARD_AHEAD_S."""
+    if not 0 <= seconds <= MAX_HAZARD_AHEAD_S:
+        raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {seconds}")
+
+
 def make_optimizer(model: nn.Module, tc: TrainConfig) -> torch.optim.AdamW:
     """AdamW decaying only weight matrices and kernels: not biases, norms or embeddings."""
     decay, keep = [], []
@@ -1256,8 +1262,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig | None:
             raise BidError(f"{flag} weighs the hazard head's loss: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, **{field: weight})
     if args.hazard_ahead is not None:
-        if not 0 <= args.hazard_ahead <= MAX_HAZARD_AHEAD_S:
-            raise BidError(f"--hazard-ahead is in seconds, 0 to {MAX_HAZARD_AHEAD_S:g}; got {args.hazard_ahead}")
+        check_hazard_ahead(args.hazard_ahead)
         if not model.hazard:
             raise BidError("--hazard-ahead shapes the hazard head's targets: add --hazard WEIGHT")
         tc = dataclasses.replace(tc, hazard_ahead_s=args.hazard_ahead)
