@@ -70,7 +70,7 @@ START_CAP_M = 12.0  # how far a start is capped unless told (Town02: past the st
 # `move_off_braked`: a stop counts as the brakes' when they overrode a control head asking for no
 # braking (accel >= 0) within this long before the ego came to stand.
 BRAKED_STOP_S = 1.0
-# `sc_logit`: a presence logit past this says yes (odds 1 to 20 000) or no to everything.
+# `sc_logit`, `fine_logit`: a presence logit past this says yes (odds 1 to 20 000) or no to everything.
 MAX_SC_LOGIT = 10.0
 
 
@@ -301,6 +301,8 @@ class BIDAgent:
     its logit is above this (0, the config's, when None; ModelConfig.sc_logit). Fitted with weight
     4 on pedestrians and look-ahead targets, ahead46 said yes on 10-18 % of frames with none in
     the path (docs/experiments.md).
+    fine_logit: the same for the fine SC's pedestrian (a grafted checkpoint, bid graft;
+    ModelConfig.fine_logit).
     """
 
     uses_camera = True
@@ -316,7 +318,7 @@ class BIDAgent:
                  vehicle_second_head: bool = False, light_still: bool = False,
                  light_short: float | None = None, move_off_green: float | None = None,
                  green_far: float | None = None, light_hold: bool = False, vehicle_hold: float = 0.0,
-                 sc_logit: float | None = None):
+                 sc_logit: float | None = None, fine_logit: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -325,15 +327,19 @@ class BIDAgent:
                                f"or drop {name}")
         if sc_still and sc_still_moving:
             raise BidError("sc_still reads SC still at every step, sc_still_moving only while moving; keep one")
-        if sc_logit is not None:
-            if not self.config.model.sc_presence:
-                raise BidError(f"sc_logit is where SC's presence logit says yes; {checkpoint}'s SC has none: "
-                               "train one with --hazard-sc --sc-presence, or drop it")
-            if not -MAX_SC_LOGIT <= sc_logit <= MAX_SC_LOGIT:
-                raise BidError(f"sc_logit is a logit from {-MAX_SC_LOGIT:g} to {MAX_SC_LOGIT:g}; got {sc_logit}")
+        if sc_logit is not None and not self.config.model.sc_presence:
+            raise BidError(f"sc_logit is where SC's presence logit says yes; {checkpoint}'s SC has none: "
+                           "train one with --hazard-sc --sc-presence, or drop it")
+        if fine_logit is not None and not self.config.model.sc_fine:
+            raise BidError(f"fine_logit is where the fine SC's presence logit says yes; {checkpoint} has no fine SC: "
+                           "add one with bid graft --fine-sc, or drop it")
+        logits = {name: float(value) for name, value in (("sc_logit", sc_logit), ("fine_logit", fine_logit))
+                  if value is not None}
+        for name, value in logits.items():
+            if not -MAX_SC_LOGIT <= value <= MAX_SC_LOGIT:
+                raise BidError(f"{name} is a logit from {-MAX_SC_LOGIT:g} to {MAX_SC_LOGIT:g}; got {value}")
         # How SC reads (config's READ_FIELDS), set on the loaded model's config.
-        reads = {**({"sc_logit": float(sc_logit)} if sc_logit is not None else {}),
-                 **({"sc_still": True} if sc_still else {})}
+        reads = {**logits, **({"sc_still": True} if sc_still else {})}
         if reads:
             model_config = dataclasses.replace(self.config.model, **reads)
             self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)

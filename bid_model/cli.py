@@ -244,9 +244,10 @@ def _graft(args: argparse.Namespace) -> int:
 
     payload = graft_fine_sc(args.checkpoint, args.fine_sc, args.out)
     model = payload["config"]["model"]
-    print(f"{args.out}: {args.checkpoint} with {args.fine_sc}'s SC beside its own, reading frames "
-          f"{model['sc_fine']}x finer (input {model['frame_hw'][0] * model['sc_fine']}x"
-          f"{model['frame_hw'][1] * model['sc_fine']}); its pedestrian read "
+    scale = max(model["sc_fine"], model.get("sc_scale") or 1)
+    print(f"{args.out}: {args.checkpoint} with {args.fine_sc}'s SC beside its own, reading frames at "
+          f"{model['sc_fine']}x the cortex's resolution (input {model['frame_hw'][0] * scale}x"
+          f"{model['frame_hw'][1] * scale}); its pedestrian read "
           f"{'while the ego moves' if model['fine_moving'] else 'always'}")
     return 0
 

@@ -34,7 +34,8 @@ INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_
 # resized, model.resize_grid_tokens; the convolutions do not depend on it).
 RESIZE_FIELDS = frozenset({"frame_hw"})
 # Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
-READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed", "fine_moving", "sc_logit"})
+READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed", "fine_moving", "sc_logit",
+                         "fine_logit"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -129,6 +130,9 @@ class ModelConfig:
     # The fine SC's pedestrian counts only while the ego moves (MOVING_MPS or faster): standing it
     # added 2.4 points of pedestrians seen for 3.1 points of false sightings, moving 23 for 3.4.
     fine_moving: bool = True
+    # The fine SC's pedestrian counts only where its presence logit is above this (a reading, as
+    # sc_logit is the first SC's: `bid evaluate --fine-logit`).
+    fine_logit: float = 0.0
     # The hazard head reads MPC's tokens merged a second time without the speed token, so that it
     # cannot read "standing, so something ahead": with the speed, the shipped head read a vehicle
     # 7.5 m ahead of a standing ego in an empty street (at 5 m/s: none), which kept move-off
@@ -178,6 +182,8 @@ class ModelConfig:
             raise ValueError(f"sc_fine is a whole factor, 1 to 4, or 0 for none; got {self.sc_fine!r}")
         if self.sc_fine and not self.hazard_sc:
             raise ValueError("sc_fine is a second SC beside the first: it needs hazard_sc")
+        if self.fine_logit and not self.sc_fine:
+            raise ValueError("fine_logit is where the fine SC's presence logit says yes: it needs sc_fine")
         if self.sc_fine and self.input_scale % min(self.sc_scale, self.sc_fine):
             raise ValueError(f"sc_scale {self.sc_scale} and sc_fine {self.sc_fine} read one input each "
                              "area-averaged down by a whole factor: one must divide the other")

@@ -411,14 +411,13 @@ class BID(nn.Module):
     def sc_near(self, apart: torch.Tensor, fine: bool = False) -> torch.Tensor:
         """(batch, 2): SC's own (pedestrian, vehicle) nearness out of forward_hazard(apart=True)'s
         columns (a model with SC; `fine`: the fine SC's); with presence logits only where the
-        kind's says one is in the path (above 0; the first SC's pedestrian above
-        config.sc_logit), else 0."""
+        kind's says one is in the path (above 0; the pedestrian above config.sc_logit, the fine
+        SC's above config.fine_logit), else 0."""
         k = len(PATH_KINDS)
         sc = self.sc_columns(apart, fine)
         if fine or self.config.sc_presence:
             at = torch.zeros(k, dtype=sc.dtype, device=sc.device)
-            if not fine:
-                at[PATH_KINDS.index("pedestrian")] = self.config.sc_logit
+            at[PATH_KINDS.index("pedestrian")] = self.config.fine_logit if fine else self.config.sc_logit
             sc = torch.where(sc[:, k:] > at, sc[:, :k], torch.zeros_like(sc[:, :k]))
         return sc
 

@@ -142,7 +142,7 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
              "light_short": args.light_short, "move_off_green": args.move_off_green,
              "green_far": args.green_far, "light_hold": args.light_hold,
-             "vehicle_hold": args.vehicle_hold, "sc_logit": args.sc_logit}
+             "vehicle_hold": args.vehicle_hold, "sc_logit": args.sc_logit, "fine_logit": args.fine_logit}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -315,6 +315,9 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="--agent bid with SC presence logits (bid train --sc-presence): SC's pedestrian counts only "
                         "where its logit is above T (default 0, the odds its training's weight set); higher, surer "
                         "(bid_model/agent.py)")
+    g.add_argument("--fine-logit", type=float, default=None, metavar="T",
+                   help="--agent bid with a grafted fine SC (bid graft --fine-sc): its pedestrian counts only where "
+                        "its presence logit is above T (default 0) (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

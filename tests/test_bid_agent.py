@@ -10,7 +10,7 @@ from render_scenes import street_scene
 from bid_model.agent import BIDAgent
 from bid_model.config import tiny
 from bid_model.train import train
-from bid_sim.cli import main
+from bid_sim.cli import _drive_options, build_parser, main
 from bid_sim.ego import EgoParams
 from bid_sim.episode import run_episode
 from bid_sim.errors import BidError
@@ -632,7 +632,6 @@ def test_hazard_brake_brakes_for_the_pedestrian_the_head_sees(checkpoint, record
         BIDAgent(tmp_path / "hz" / "last.pt", hazard_brake=1.0, vehicle_hold=3.0)
     with pytest.raises(BidError, match="from 0 to 8 m"):
         BIDAgent(tmp_path / "hz" / "last.pt", vehicle_brake=1.0, vehicle_hold=9.0)
-    from bid_sim.cli import _drive_options, build_parser
 
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--light-brake", "1", "--light-hold"])
     assert _drive_options(args, None) == {"light_brake": 1.0, "light_hold": True}
@@ -1004,7 +1003,6 @@ def test_light_still_reads_the_red_light_from_frame_t_alone_below_start_speed(tm
             BIDAgent(path, light_still=True, **kwargs)
     assert main(["evaluate", "--agent", "expert", "--light-still", "--out", str(tmp_path / "x")]) == 2
     assert "--light-still is an option of --agent bid" in capsys.readouterr().err
-    from bid_sim.cli import _drive_options, build_parser
 
     args = build_parser().parse_args(["evaluate", "--agent", "bid", "--light-still", "--light-short", "0"])
     assert _drive_options(args, None) == {"light_still": True, "light_short": 0.0}  # a gap of 0 is kept
@@ -1031,7 +1029,7 @@ def test_a_grafted_fine_sc_brakes_for_its_pedestrian_only_while_moving(tmp_path,
     donor["model"] = {**donor["model"], **{k: v for k, v in fresh.items() if k.startswith("hazard_sc.")}}
     save_checkpoint(tmp_path / "donor.pt", donor)
     assert main(["graft", str(shipped), "--fine-sc", str(tmp_path / "donor.pt"), "--out", str(tmp_path / "g.pt")]) == 0
-    assert "input 128x384" in capsys.readouterr().out
+    assert "at 2x the cortex's resolution (input 128x384)" in capsys.readouterr().out
     agent = BIDAgent(tmp_path / "g.pt", hazard_brake=1.0)
     assert agent.hw == (128, 384)
     with torch.no_grad():  # the control head accelerates; only the fine SC sees anything
@@ -1051,3 +1049,18 @@ def test_a_grafted_fine_sc_brakes_for_its_pedestrian_only_while_moving(tmp_path,
         assert accel == (pytest.approx(-brake, abs=1e-5) if brake > 0 else pytest.approx(1.0)), speed
         assert agent.near[1] == 0.0  # the fine SC's vehicle is not read
     assert pedestrian_brake(0.9, 0.3) > 0
+
+    # `bid evaluate --fine-logit T`: the fine SC's pedestrian counts only where its logit (5 here) is above T;
+    # the first SC's threshold is its own (sc_logit) and a checkpoint without a fine SC takes none.
+    for logit, brake in ((4.9, pedestrian_brake(0.9, 6.0)), (5.1, 0.0)):
+        surer = BIDAgent(tmp_path / "g.pt", hazard_brake=1.0, fine_logit=logit)
+        surer.model.load_state_dict(agent.model.state_dict())
+        assert surer.model.config.fine_logit == logit and surer.model.config.sc_logit == 0.0
+        surer.reset(None)
+        accel = surer.act(Observation(frame, frame, 4, 6.0, None)).accel
+        assert accel == (pytest.approx(-brake, abs=1e-5) if brake > 0 else pytest.approx(1.0)), logit
+    for checkpoint, logit, says in ((shipped, 1.0, "has no fine SC"), (tmp_path / "g.pt", -10.5, "from -10 to 10")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(checkpoint, fine_logit=logit)
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--fine-logit", "0.5"])
+    assert _drive_options(args, None) == {"fine_logit": 0.5}

@@ -272,7 +272,7 @@ def test_graft_puts_a_second_sc_beside_the_first_and_probe_reads_it_apart(record
     `bid train --train-only SC_fine` fine-tunes the fine SC alone."""
     out = tmp_path / "grafted.pt"
     assert bid(["graft", str(sc_run), "--fine-sc", str(sc_run), "--out", str(out)]) == 0
-    assert "1x finer" in capsys.readouterr().out
+    assert "at 1x the cortex's resolution (input" in capsys.readouterr().out
     grafted, base = load_checkpoint(out), load_checkpoint(sc_run)
     assert grafted["config"]["model"]["sc_fine"] == 1 and grafted["graft"]["fine_sc"] == str(sc_run)
     assert "optimizer" not in grafted
