@@ -303,6 +303,8 @@ class BIDAgent:
     the path (docs/experiments.md).
     fine_logit: the same for the fine SC's pedestrian (a grafted checkpoint, bid graft;
     ModelConfig.fine_logit).
+    fine_speed: the fine SC's pedestrian counts only at this speed (m/s) or faster (MOVING_MPS,
+    the config's, when None; ModelConfig.fine_speed).
     """
 
     uses_camera = True
@@ -318,7 +320,8 @@ class BIDAgent:
                  vehicle_second_head: bool = False, light_still: bool = False,
                  light_short: float | None = None, move_off_green: float | None = None,
                  green_far: float | None = None, light_hold: bool = False, vehicle_hold: float = 0.0,
-                 sc_logit: float | None = None, fine_logit: float | None = None):
+                 sc_logit: float | None = None, fine_logit: float | None = None,
+                 fine_speed: float | None = None):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -338,10 +341,17 @@ class BIDAgent:
         for name, value in logits.items():
             if not -MAX_SC_LOGIT <= value <= MAX_SC_LOGIT:
                 raise BidError(f"{name} is a logit from {-MAX_SC_LOGIT:g} to {MAX_SC_LOGIT:g}; got {value}")
+        if fine_speed is not None and not (self.config.model.sc_fine and self.config.model.fine_moving):
+            raise BidError(f"fine_speed is where the fine SC starts to count while moving; {checkpoint} has no fine SC "
+                           "read while moving: add one with bid graft --fine-sc, or drop it")
         # How SC reads (config's READ_FIELDS), set on the loaded model's config.
-        reads = {**logits, **({"sc_still": True} if sc_still else {})}
+        reads = {**logits, **({"sc_still": True} if sc_still else {}),
+                 **({"fine_speed": float(fine_speed)} if fine_speed is not None else {})}
         if reads:
-            model_config = dataclasses.replace(self.config.model, **reads)
+            try:
+                model_config = dataclasses.replace(self.config.model, **reads)
+            except ValueError as e:
+                raise BidError(f"{checkpoint}: {e}") from None
             self.model.config, self.config = model_config, dataclasses.replace(self.config, model=model_config)
         # With sc_still_moving the model's config is swapped per step: SC's reading is the config's.
         self._sc_configs = ((self.config.model, dataclasses.replace(self.config.model, sc_still=True))

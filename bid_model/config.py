@@ -35,7 +35,7 @@ INIT_FIELDS = VARIANT_FIELDS | {"forecast_s", "hazard", "hazard_light", "hazard_
 RESIZE_FIELDS = frozenset({"frame_hw"})
 # Fields that change what a part reads, not its weights: `--init` keeps the weights as they are.
 READ_FIELDS = frozenset({"sc_still", "hazard_speedless", "move_off_speed", "fine_moving", "sc_logit",
-                         "fine_logit"})
+                         "fine_logit", "fine_speed"})
 
 # Horizons of `--forecast`: the speed 1, 2 and 3 s ahead. At Town01's 11 m/s the expert
 # starts braking for a 90° corner about 3 s before it.
@@ -47,6 +47,8 @@ KINDS = ("pedestrian", "vehicle", "red_light", "crossing")
 PATH_KINDS = KINDS[:2]  # those found in the path (hazards.path_hazards)
 # The ego moves at this speed or faster (train --hazard-moving-weight, bid probe, config.fine_moving).
 MOVING_MPS = 0.3
+# config.fine_speed at most (the town's limit is 9 m/s).
+MAX_FINE_SPEED_MPS = 15.0
 # What `bid probe --source` probes: the hazard reading the brakes use (with SC, the larger of the
 # head's and SC's), the head's alone, SC's alone, or the fine SC's alone (sc_fine); the merged
 # reading hides which of them sees and which reads wrongly. Here so the CLI lists them without torch.
@@ -133,6 +135,10 @@ class ModelConfig:
     # The fine SC's pedestrian counts only where its presence logit is above this (a reading, as
     # sc_logit is the first SC's: `bid evaluate --fine-logit`).
     fine_logit: float = 0.0
+    # With fine_moving, the speed from which the fine SC's pedestrian counts (m/s; a reading,
+    # `bid evaluate --fine-speed`): the shipped BID met its pedestrians at 3-9 m/s, while reading
+    # the fine SC from 0.3 m/s braked for them in crowded queues and junctions (docs/experiments.md).
+    fine_speed: float = MOVING_MPS
     # The hazard head reads MPC's tokens merged a second time without the speed token, so that it
     # cannot read "standing, so something ahead": with the speed, the shipped head read a vehicle
     # 7.5 m ahead of a standing ego in an empty street (at 5 m/s: none), which kept move-off
@@ -182,6 +188,11 @@ class ModelConfig:
             raise ValueError(f"sc_fine is a whole factor, 1 to 4, or 0 for none; got {self.sc_fine!r}")
         if self.sc_fine and not self.hazard_sc:
             raise ValueError("sc_fine is a second SC beside the first: it needs hazard_sc")
+        if not 0 <= self.fine_speed <= MAX_FINE_SPEED_MPS:
+            raise ValueError(f"fine_speed is a speed from 0 to {MAX_FINE_SPEED_MPS:g} m/s; got {self.fine_speed}")
+        if self.fine_speed != MOVING_MPS and not (self.sc_fine and self.fine_moving):
+            raise ValueError("fine_speed is where the fine SC starts to count while moving: it needs sc_fine "
+                             "and fine_moving")
         if self.fine_logit and not self.sc_fine:
             raise ValueError("fine_logit is where the fine SC's presence logit says yes: it needs sc_fine")
         if self.sc_fine and self.input_scale % min(self.sc_scale, self.sc_fine):

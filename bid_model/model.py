@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from bid_model.areas import CPC, DPC, IT, MPC, MT, OFC, SC, V1, V2, V4, VPC, GridTokens, half
-from bid_model.config import MOVING_MPS, PATH_KINDS, ModelConfig
+from bid_model.config import PATH_KINDS, ModelConfig
 from bid_sim.errors import BidError
 
 AREAS = ("V1", "V2", "V4", "IT", "MT", "VPC", "DPC", "OFC", "MPC", "CPC")
@@ -374,7 +374,7 @@ class BID(nn.Module):
         outputs then SC's, (batch, hazard_kinds() + 2), with config.sc_presence + 4 (SC's nearness,
         then its logits), so that training fits each alone, and with config.sc_fine the fine SC's
         four after them; merged, its pedestrian with config.fine_moving only where `speed_mps`
-        is MOVING_MPS or more: merge_hazard); with config.hazard_crossing the last
+        is config.fine_speed or more: merge_hazard); with config.hazard_crossing the last
         column is how near an occupied crossing is (its own SC map's), both ways. With
         config.head_presence the head's pedestrian counts only where its presence logit says she
         is in the path (gate_head); `apart` gives the logit after the head's nearness. `move_off`:
@@ -425,7 +425,7 @@ class BID(nn.Module):
         """forward_hazard(apart=True)'s columns (a model with SC) as forward_hazard gives them: the
         pedestrian's and the vehicle's nearness the larger of the head's and SC's (sc_near), with
         config.sc_fine the pedestrian's also of the fine SC's (with config.fine_moving only where
-        `speed_mps`, (batch,), is MOVING_MPS or more), then the head's others, then the crossing
+        `speed_mps`, (batch,), is config.fine_speed or more), then the head's others, then the crossing
         map's; the head's pedestrian with config.head_presence only where it says she is in the
         path (gate_head)."""
         k, n = len(PATH_KINDS), self.head_columns()
@@ -438,7 +438,8 @@ class BID(nn.Module):
             if self.config.fine_moving:
                 if speed_mps is None:
                     raise BidError("this model reads its fine SC only while the ego moves: pass speed_mps")
-                fine = torch.where(speed_mps.reshape(-1).to(fine.device) >= MOVING_MPS, fine, torch.zeros_like(fine))
+                moving = speed_mps.reshape(-1).to(fine.device) >= self.config.fine_speed
+                fine = torch.where(moving, fine, torch.zeros_like(fine))
             near = near.clone()
             near[:, at] = torch.maximum(near[:, at], fine)
         return torch.cat([near, head[:, k:], crossing], dim=1)

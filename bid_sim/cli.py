@@ -142,14 +142,15 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "vehicle_second_head": args.vehicle_second_head, "light_still": args.light_still,
              "light_short": args.light_short, "move_off_green": args.move_off_green,
              "green_far": args.green_far, "light_hold": args.light_hold,
-             "vehicle_hold": args.vehicle_hold, "sc_logit": args.sc_logit, "fine_logit": args.fine_logit}
+             "vehicle_hold": args.vehicle_hold, "sc_logit": args.sc_logit, "fine_logit": args.fine_logit,
+             "fine_speed": args.fine_speed}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
-    # A hold, a wait or a gap of 0 means something (never hold, no wait, stop at the line), so it is kept where
-    # the other options' 0 is dropped.
-    return {k: v for k, v in given.items()
-            if v or (k in ("pedestrian_hold", "move_off_braked", "light_short", "move_off_green") and v is not None)} or None
+    # A hold, a wait, a gap or a speed of 0 means something (never hold, no wait, stop at the line, standing
+    # too), so it is kept where the other options' 0 is dropped.
+    kept = ("pedestrian_hold", "move_off_braked", "light_short", "move_off_green", "fine_speed")
+    return {k: v for k, v in given.items() if v or (k in kept and v is not None)} or None
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -318,6 +319,9 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fine-logit", type=float, default=None, metavar="T",
                    help="--agent bid with a grafted fine SC (bid graft --fine-sc): its pedestrian counts only where "
                         "its presence logit is above T (default 0) (bid_model/agent.py)")
+    g.add_argument("--fine-speed", type=float, default=None, metavar="MPS",
+                   help="--agent bid with a grafted fine SC read while moving: its pedestrian counts only at MPS "
+                        "(0 to 15) or faster (default 0.3) (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1062,5 +1062,18 @@ def test_a_grafted_fine_sc_brakes_for_its_pedestrian_only_while_moving(tmp_path,
     for checkpoint, logit, says in ((shipped, 1.0, "has no fine SC"), (tmp_path / "g.pt", -10.5, "from -10 to 10")):
         with pytest.raises(BidError, match=says):
             BIDAgent(checkpoint, fine_logit=logit)
-    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--fine-logit", "0.5"])
-    assert _drive_options(args, None) == {"fine_logit": 0.5}
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--fine-logit", "0.5", "--fine-speed", "0"])
+    assert _drive_options(args, None) == {"fine_logit": 0.5, "fine_speed": 0.0}  # from standing: kept
+
+    # `bid evaluate --fine-speed MPS`: the fine SC's pedestrian counts only at MPS or faster.
+    for speed, fine_speed, brake in ((6.0, 3.0, pedestrian_brake(0.9, 6.0)), (2.9, 3.0, 0.0),
+                                     (0.0, 0.0, pedestrian_brake(0.9, 0.0))):
+        later = BIDAgent(tmp_path / "g.pt", hazard_brake=1.0, fine_speed=fine_speed)
+        later.model.load_state_dict(agent.model.state_dict())
+        later.reset(None)
+        accel = later.act(Observation(frame, frame, 4, speed, None)).accel
+        assert accel == (pytest.approx(-brake, abs=1e-5) if brake > 0 else pytest.approx(1.0)), (speed, fine_speed)
+    for checkpoint, fine_speed, says in ((shipped, 3.0, "no fine SC read while moving"),
+                                         (tmp_path / "g.pt", 16.0, "from 0 to 15 m/s")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(checkpoint, fine_speed=fine_speed)
