@@ -129,15 +129,16 @@ class ModelConfig:
     # within 10 m and 8 % of a moving one's, sp40b's at 2× 20 % and 25 % (docs/experiments.md).
     # The input is frame_hw × the larger of sc_scale and sc_fine; each reads it area-averaged down.
     sc_fine: int = 0
-    # The fine SC's pedestrian counts only while the ego moves (MOVING_MPS or faster): standing it
+    # The fine SC's pedestrian counts only while the ego moves (fine_speed or faster): standing it
     # added 2.4 points of pedestrians seen for 3.1 points of false sightings, moving 23 for 3.4.
     fine_moving: bool = True
     # The fine SC's pedestrian counts only where its presence logit is above this (a reading, as
     # sc_logit is the first SC's: `bid evaluate --fine-logit`).
     fine_logit: float = 0.0
     # With fine_moving, the speed from which the fine SC's pedestrian counts (m/s; a reading,
-    # `bid evaluate --fine-speed`): the shipped BID met its pedestrians at 3-9 m/s, while reading
-    # the fine SC from 0.3 m/s braked for them in crowded queues and junctions (docs/experiments.md).
+    # `bid evaluate --fine-speed`). The shipped BID meets its pedestrians at 3-9 m/s; ahead46's SC
+    # read from 3 m/s left Town02 as it was, from 0.3 m/s it braked crowded into queues and junctions
+    # (docs/experiments.md).
     fine_speed: float = MOVING_MPS
     # The hazard head reads MPC's tokens merged a second time without the speed token, so that it
     # cannot read "standing, so something ahead": with the speed, the shipped head read a vehicle
