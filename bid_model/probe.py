@@ -32,6 +32,7 @@ from bid_model.train import (
     ranking_auc,
     second_targets,
 )
+from bid_sim.ego import DT_S
 from bid_sim.errors import BidError
 
 # Nearness thresholds the shares are also given at ("at"): a detector that sees more at 0.2 may
@@ -45,6 +46,13 @@ CLOSE_M = 4.0
 # what a larger w would have said, were the logit calibrated, a higher one a smaller w (what
 # `bid evaluate --sc-logit` reads the pedestrian's at).
 LOGIT_THRESHOLDS = (2.0, 1.0, 0.5, 0.0, -0.5, -1.0, -2.0)
+# Walk-ins (`walk_ins`): the shipped BID's pedestrian contacts in Town02 were all pedestrians who
+# entered its path 0.3-1.9 s before, mostly 5-8 m ahead of a moving ego (docs/experiments.md).
+# A share "within NEAR_M" counts the frames after she is in; these count how early she is seen.
+ENTRY_M = 12.0  # she enters the path this near or nearer
+ENTRY_CLEAR_S = 1.0  # with no pedestrian in the path (within HAZARD_AHEAD_M) this long before
+LEADS_S = (0.0, 0.5, 1.0, 1.5, 2.0)  # read this long before she enters
+CLEAR_AHEAD_S = 3.0  # a moving frame with no one in the path now nor this long after: none to see
 
 
 def _median_m(nearness: torch.Tensor) -> float | None:
@@ -108,6 +116,69 @@ def _logits(logit: torch.Tensor, target: torch.Tensor) -> dict[str, dict[str, An
     return out
 
 
+def walk_ins(now: np.ndarray, episode: np.ndarray, step: np.ndarray, speed_mps: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(entries, clear) over every frame of recordings in (episode, step) order, from `now`, the
+    metres to the nearest pedestrian in the path where she is (hazards.path_hazards without a
+    look-ahead; HAZARD_AHEAD_M: none). `entries`: the frames where one enters the path ENTRY_M
+    or nearer ahead of an ego moving at MOVING_MPS or faster, with no pedestrian in it for the
+    ENTRY_CLEAR_S before (all recorded). `clear`: a bool per frame, the ego moving and no
+    pedestrian in the path from then to CLEAR_AHEAD_S after (all recorded)."""
+    back, ahead = round(ENTRY_CLEAR_S / DT_S), round(CLEAR_AHEAD_S / DT_S)
+    none = now >= HAZARD_AHEAD_M
+    moving = speed_mps >= MOVING_MPS
+    entries, clear = [], np.zeros(len(now), dtype=bool)
+    for e in np.unique(episode):
+        rows = np.flatnonzero(episode == e)
+        steps, gone = step[rows], none[rows]
+        for j, r in enumerate(rows):
+            lo = np.searchsorted(steps, steps[j] - back)
+            whole_before = lo < j and steps[lo] == steps[j] - back and steps[j] - steps[lo] == j - lo
+            if (now[r] <= ENTRY_M and moving[r] and whole_before and gone[lo:j].all()):
+                entries.append(r)
+            hi = np.searchsorted(steps, steps[j] + ahead, side="right")
+            whole_after = hi - 1 - j == ahead and steps[hi - 1] == steps[j] + ahead
+            clear[r] = moving[r] and whole_after and gone[j:hi].all()
+    return np.array(entries, dtype=np.int64), clear
+
+
+def _lead_rows(entries: np.ndarray, episode: np.ndarray, step: np.ndarray) -> dict[str, np.ndarray]:
+    """Per lead of LEADS_S, the frame that long before each entry (-1 where not recorded)."""
+    out = {}
+    for lead in LEADS_S:
+        want = step[entries] - round(lead / DT_S)
+        rows = np.full(len(entries), -1, dtype=np.int64)
+        for i, (r, s) in enumerate(zip(entries, want, strict=True)):
+            j = r - (step[r] - s)
+            if 0 <= j and episode[j] == episode[r] and step[j] == s:
+                rows[i] = j
+        out[f"{lead:g}"] = rows
+    return out
+
+
+def _walk_in_result(read: dict[int, float], entries: np.ndarray, leads: dict[str, np.ndarray], now: np.ndarray,
+                    speed_mps: np.ndarray, clear_rows: np.ndarray, files: list[str], episode: np.ndarray,
+                    step: np.ndarray) -> dict[str, Any]:
+    """The walk-ins' figures from `read`, the pedestrian reading (nearness) of each frame the
+    model ran on: per lead, how many entries have that frame and the share of them seen
+    (SEEN_NEARNESS or more); the share of the sampled `clear_rows` seen (wrongly); and each
+    entry (its recording, step, metres, speed and readings)."""
+    def seen(rows: np.ndarray) -> float | None:
+        return float(np.mean([read[int(r)] >= SEEN_NEARNESS for r in rows])) if len(rows) else None
+
+    return {"entries": len(entries),
+            "leads": {lead: {"frames": int((rows >= 0).sum()), "seen": seen(rows[rows >= 0])}
+                      for lead, rows in leads.items()},
+            "clear_frames": len(clear_rows), "clear_seen": seen(clear_rows),
+            "median_m": float(np.median(now[entries])) if len(entries) else None,
+            "median_mps": float(np.median(speed_mps[entries])) if len(entries) else None,
+            "list": [{"recording": files[int(episode[r])], "step": int(step[r]), "m": round(float(now[r]), 1),
+                      "mps": round(float(speed_mps[r]), 1),
+                      "read": {lead: (None if rows[i] < 0 else round(read[int(rows[i])], 3))
+                               for lead, rows in leads.items()}}
+                     for i, r in enumerate(entries)]}
+
+
 def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, every: int = 1,
                   batch_size: int = 64, threads: int | None = None, second: bool = False,
                   source: str = "merged", hazard_ahead_s: float = 0.0) -> dict[str, Any]:
@@ -127,7 +198,10 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     frames) or the fine SC's alone (config.sc_fine; gated by its logits, and `logits` too),
     while the ego stands too. `hazard_ahead_s`: a pedestrian counts in the path also where the
     recording shows her in it within that many seconds (`bid train --hazard-ahead`), so a
-    sighting of one about to walk in is right, not wrong."""
+    sighting of one about to walk in is right, not wrong. `walk_ins`: how early the pedestrian
+    reading of `source` sees the ones who walk into a moving ego's path (`walk_ins`: counted
+    where they are, whatever `hazard_ahead_s`; the frames before each entry are read too, even
+    those `every` skips)."""
     if every < 1:
         raise BidError(f"every is a frame step, 1 or more; got {every}")
     check_hazard_ahead(hazard_ahead_s)
@@ -151,10 +225,17 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     data, facts = open_every_frame(folder, config.model.input_hw, crossing=config.model.hazard_crossing,
                                    bumper_m=bumper_m, hazard_ahead_s=hazard_ahead_s)
     rows = np.arange(0, len(data), every)
+    index = data.index
+    now = data.hazard[:, 0] if hazard_ahead_s == 0 else open_every_frame(
+        folder, config.model.input_hw, crossing=config.model.hazard_crossing)[0].hazard[:, 0]
+    now = (1.0 - np.asarray(now, dtype=np.float64)) * HAZARD_AHEAD_M
+    entries, clear = walk_ins(now, index.episode, index.step, index.speed)
+    leads = _lead_rows(entries, index.episode, index.step)
+    run = np.union1d(rows, np.concatenate([r[r >= 0] for r in leads.values()] + [rows[:0]]))
     preds, logits, targets, commands, episodes, speeds, greens = [], [], [], [], [], [], []
     with torch.inference_mode():
-        for start in range(0, len(rows), batch_size):
-            items = [data[int(i)] for i in rows[start:start + batch_size]]
+        for start in range(0, len(run), batch_size):
+            items = [data[int(i)] for i in run[start:start + batch_size]]
             command = [it["command"] for it in items]
             speed = torch.tensor([it["speed_mps"] for it in items], dtype=torch.float32)
             out = model(torch.stack([it["frame"] for it in items]), torch.stack([it["prev_frame"] for it in items]),
@@ -177,14 +258,21 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
             episodes += [it["episode"] for it in items]
             speeds += [float(it["speed_mps"]) for it in items]
             greens += [float(it.get("green_m", HAZARD_AHEAD_M)) for it in items]
-    pred, every_target = torch.cat(preds), torch.cat(targets)
+    # The sampled frames' figures; the lead frames only the walk-ins read.
+    sampled = np.isin(run, rows)
+    read = dict(zip(run.tolist(), torch.cat(preds)[:, 0].tolist(), strict=True))
+    walked = _walk_in_result(read, entries, leads, now, index.speed, rows[clear[rows]],
+                             [Path(f).name for f in index.files], index.episode, index.step)
+    keep = torch.from_numpy(sampled)
+    pred, every_target = torch.cat(preds)[keep], torch.cat(targets)[keep]
+    speed, green = np.array(speeds)[sampled], np.array(greens)[sampled]
     target = every_target[:, :pred.shape[1]]
     groups: dict[str, np.ndarray] = {
-        "command": np.array([COMMAND_NAMES[c] for c in commands]),
-        "weather": np.array([facts[e].get("weather", "?") for e in episodes]),
-        "density": np.array([facts[e].get("density", "?") for e in episodes]),
-        "ego": np.where(np.array(speeds) >= MOVING_MPS, "moving", "standing"),
-        "stop line": _stop_line(every_target, np.array(speeds), np.array(greens)),
+        "command": np.array([COMMAND_NAMES[c] for c in commands])[sampled],
+        "weather": np.array([facts[e].get("weather", "?") for e in episodes])[sampled],
+        "density": np.array([facts[e].get("density", "?") for e in episodes])[sampled],
+        "ego": np.where(speed >= MOVING_MPS, "moving", "standing"),
+        "stop line": _stop_line(every_target, speed, green),
     }
     by: dict[str, dict[str, Any]] = {}
     for name, labels in groups.items():
@@ -195,11 +283,11 @@ def probe_hazards(checkpoint: str | os.PathLike, folder: str | os.PathLike, ever
     towns = sorted({f.get("town", "?") for f in facts})
     return {"checkpoint": str(checkpoint), **({"head": "second"} if second else {}),
             **({"source": source} if apart else {}),
-            **({"logits": _logits(torch.cat(logits), target)} if logits else {}),
+            **({"logits": _logits(torch.cat(logits)[keep], target)} if logits else {}),
             **({"bumper_m": bumper_m} if bumper_m > 0 else {}),
             **({"hazard_ahead_s": hazard_ahead_s} if hazard_ahead_s > 0 else {}),
             "folder": str(folder), "towns": towns, "recordings": len(facts),
-            "frames": len(rows), "every": every, "all": _group(pred, target), "by": by}
+            "frames": len(rows), "every": every, "all": _group(pred, target), "by": by, "walk_ins": walked}
 
 
 def _percent(x: float | None) -> str:
@@ -247,6 +335,20 @@ def probe_table(result: dict[str, Any]) -> str:
                       "| seen % | " + " | ".join(_percent(a["seen_near"]) for a in logit["at"].values()) + " |",
                       "| seen wrongly % | " + " | ".join(_percent(a["seen_none"]) for a in logit["at"].values())
                       + " |", ""]
+    walked = result.get("walk_ins")
+    if walked:
+        leads = walked["leads"]
+        median = ("" if walked["median_m"] is None else
+                  f" (median {walked['median_m']:.1f} m ahead at {walked['median_mps']:.1f} m/s)")
+        lines += ["## pedestrians walking in", "",
+                  f"{walked['entries']} times a pedestrian entered the path {ENTRY_M:g} m or nearer ahead of the moving "
+                  f"ego{median}, with none in it for the {ENTRY_CLEAR_S:g} s before. The pedestrian reading "
+                  f"(nearness ≥ {SEEN_NEARNESS:g}) that long before:", "",
+                  "| before she enters, s | " + " | ".join(leads) + " |", "|---" * (len(leads) + 1) + "|",
+                  "| entries recorded that long | " + " | ".join(str(a["frames"]) for a in leads.values()) + " |",
+                  "| seen % | " + " | ".join(_percent(a["seen"]) for a in leads.values()) + " |", "",
+                  f"Moving, with no pedestrian in the path then nor for the {CLEAR_AHEAD_S:g} s after: "
+                  f"{walked['clear_frames']} frames, seen wrongly {_percent(walked['clear_seen'])} %.", ""]
     return "\n".join(lines)
 
 

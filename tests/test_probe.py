@@ -11,7 +11,15 @@ from bid_model.checkpoint import load_checkpoint, load_model
 from bid_model.config import MOVING_MPS, PATH_KINDS
 from bid_model.data import COMMAND_NAMES, command_one_hot
 from bid_model.hazards import HAZARD_AHEAD_M, NEAR_M, SEEN_NEARNESS
-from bid_model.probe import CLOSE_M, _group, probe_hazards, probe_table
+from bid_model.probe import (
+    CLOSE_M,
+    _group,
+    _lead_rows,
+    _walk_in_result,
+    probe_hazards,
+    probe_table,
+    walk_ins,
+)
 from bid_model.recordings import open_every_frame, open_recordings
 from bid_model.train import hazard_detection
 from bid_sim.cli import main as bid
@@ -65,7 +73,9 @@ def test_probe_can_count_pedestrians_where_they_will_be(recorded, hazard_run, on
     checkpoint = hazard_run / "hz" / "last.pt"
     plain = probe_hazards(checkpoint, recorded, every=2)
     later = probe_hazards(checkpoint, recorded, every=2, hazard_ahead_s=1.5)
-    assert asked[2:] == [0.0, 1.5]
+    # The walk-ins are counted where the pedestrians are, whatever the look-ahead.
+    assert asked[2:] == [0.0, 1.5, 0.0]
+    assert later["walk_ins"] == plain["walk_ins"]
     assert later["hazard_ahead_s"] == 1.5 and "hazard_ahead_s" not in plain
     ped = PATH_KINDS.index("pedestrian")
     near = ahead.hazard[::2, ped] >= 1 - NEAR_M / HAZARD_AHEAD_M
@@ -131,8 +141,16 @@ def test_probe_counts_what_the_outputs_see_overall_and_per_group(recorded, hazar
     # Where the ego stands: at a red line, at a green one, elsewhere (moving counts as elsewhere).
     assert set(result["by"]["stop line"]) <= {"standing at a red line", "standing at a green line", "elsewhere"}
     assert "elsewhere" in result["by"]["stop line"]
+    # The walk-ins, from where the pedestrians are (walk_ins' own test shows what counts).
+    index = data.index
+    entries, clear = walk_ins((1 - data.hazard[:, 0].astype(np.float64)) * HAZARD_AHEAD_M, index.episode,
+                              index.step, index.speed)
+    walked = result["walk_ins"]
+    assert walked["entries"] == len(entries) == len(walked["list"])
+    assert walked["clear_frames"] == int(clear[::2].sum())
     table = probe_table(result)
     assert "## pedestrian" in table and "| weather HardRainNoon |" in table
+    assert "## pedestrians walking in" in table and "| before she enters, s | 0 | 0.5 | 1 | 1.5 | 2 |" in table
     assert "| all frames, nearness ≥ | 0.2 | 0.3 | 0.4 | 0.5 | 0.6 |" in table
     assert f"| seen: read m (true) | within {CLOSE_M:g} m | seen % | seen: read m (true) |" in table
 
@@ -307,3 +325,46 @@ def test_graft_puts_a_second_sc_beside_the_first_and_probe_reads_it_apart(record
     tuned = load_checkpoint(tmp_path / "ft" / "last.pt")["model"]
     changed = {k for k, v in tuned.items() if v.is_floating_point() and not torch.equal(v, grafted["model"][k])}
     assert changed and all(k.startswith("hazard_sc_fine.") for k in changed), sorted(changed)[:5]
+
+
+def test_walk_ins_are_pedestrians_entering_a_moving_egos_path_near_after_a_clear_second():
+    """An entry: one in the path ENTRY_M (12 m) or nearer ahead of an ego moving at MOVING_MPS
+    or faster, after ENTRY_CLEAR_S (1 s, 10 recorded frames) with none in it; the frames LEADS_S
+    before it are read."""
+    none = HAZARD_AHEAD_M
+    # Episode 0, 80 frames at 5 m/s: one walks in at step 20 (8 m) and stays to 25; another at
+    # 28, only 0.3 s after, is no entry. Episode 1 stands: one at 5 m is no entry; one at 15 m
+    # while it moves is too far. Episode 2 has a gap (steps 10-14 unrecorded): 16 is no entry,
+    # nor is one at step 5, under a second into the episode.
+    now0 = np.full(80, none)
+    now0[20:26], now0[28:30] = 8.0, 7.0
+    now1 = np.full(30, none)
+    now1[15], now1[25] = 5.0, 15.0
+    steps2 = np.r_[np.arange(10), np.arange(15, 31)]
+    now2 = np.full(len(steps2), none)
+    now2[np.searchsorted(steps2, 16)], now2[5] = 6.0, 6.0
+    now = np.r_[now0, now1, now2]
+    episode = np.r_[np.zeros(80), np.ones(30), np.full(len(steps2), 2)].astype(np.int64)
+    step = np.r_[np.arange(80), np.arange(30), steps2]
+    speed = np.r_[np.full(80, 5.0), np.full(25, 0.1), np.full(5, 4.0), np.full(len(steps2), 5.0)]
+    entries, clear = walk_ins(now, episode, step, speed)
+    assert entries.tolist() == [20]
+    # Clear: moving, and none in the path from then to 3 s (30 frames) after, all recorded.
+    assert np.flatnonzero(clear[:80]).tolist() == list(range(30, 50))
+    assert not clear[80:110].any()  # standing, or someone ahead, or the episode ends too soon
+    assert not clear[110:].any()
+    # Ten frames a second: 0.5 s before is 5 frames back; 2 s before an entry at step 12 of an
+    # episode that starts at 0 is not recorded (-1).
+    leads = _lead_rows(np.array([20, 12]), np.zeros(80, dtype=np.int64), np.arange(80))
+    assert {k: v.tolist() for k, v in leads.items()} == {"0": [20, 12], "0.5": [15, 7], "1": [10, 2],
+                                                         "1.5": [5, -1], "2": [0, -1]}
+    # The shares: seen at nearness SEEN_NEARNESS or more, over the entries with that frame.
+    read = dict.fromkeys(range(80), 0.0) | {20: 0.5, 15: SEEN_NEARNESS, 12: 0.9, 2: 0.3, 30: 0.25}
+    result = _walk_in_result(read, np.array([20, 12]), leads, np.r_[now0], np.full(80, 5.0),
+                             np.array([30, 31, 32, 33]), ["a.mcap"], np.zeros(80, dtype=np.int64), np.arange(80))
+    assert result["entries"] == 2 and result["clear_frames"] == 4 and result["clear_seen"] == 0.25
+    assert {k: (v["frames"], v["seen"]) for k, v in result["leads"].items()} == {
+        "0": (2, 1.0), "0.5": (2, 0.5), "1": (2, 0.5), "1.5": (1, 0.0), "2": (1, 0.0)}
+    assert result["list"][0] == {"recording": "a.mcap", "step": 20, "m": 8.0, "mps": 5.0,
+                                 "read": {"0": 0.5, "0.5": SEEN_NEARNESS, "1": 0.0, "1.5": 0.0, "2": 0.0}}
+    assert result["list"][1]["read"]["2"] is None
