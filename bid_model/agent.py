@@ -72,6 +72,9 @@ START_CAP_M = 12.0  # how far a start is capped unless told (Town02: past the st
 BRAKED_STOP_S = 1.0
 # `sc_logit`, `fine_logit`: a presence logit past this says yes (odds 1 to 20 000) or no to everything.
 MAX_SC_LOGIT = 10.0
+# `fine_caution`: a pedestrian the fine SC reads this close is stopped for, as the merge's; farther,
+# only slowed for. Moving, it reads those in the path at a median 4.3 m (docs/experiments.md).
+CAUTION_STOP_M = 5.0
 
 
 def _stop_short(dist_m: float, speed_mps: float, short_m: float) -> float:
@@ -97,6 +100,22 @@ def pedestrian_brake(nearness: float, speed_mps: float, hold_m: float = HOLD_M) 
     if speed_mps < START_MPS and dist_m < hold_m:
         return 1.0
     return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
+
+
+def caution_brake(nearness: float, speed_mps: float, cap_mps: float) -> float:
+    """Braking (0..1) for a pedestrian read at `nearness` by a look-ahead detector (the fine SC
+    with `fine_caution`): within CAUTION_STOP_M, to stop STOP_SHORT_M short of her (never a
+    hold); farther, only to be at `cap_mps` STOP_SHORT_M short of where she is read, 0 at or
+    below it. One about to walk in is met slowly; one read wrongly slows the ego, not stops it."""
+    if nearness < SEEN_NEARNESS:
+        return 0.0
+    dist_m = nearness_m(nearness)
+    if dist_m <= CAUTION_STOP_M:
+        return _stop_short(dist_m, speed_mps, STOP_SHORT_M)
+    if speed_mps <= cap_mps:
+        return 0.0
+    gap = max(dist_m - STOP_SHORT_M, 0.5)
+    return min((speed_mps**2 - cap_mps**2) / (2.0 * gap) / EgoParams.max_brake_mps2, 1.0)
 
 
 def _binding(need: float) -> float:
@@ -305,6 +324,11 @@ class BIDAgent:
     ModelConfig.fine_logit).
     fine_speed: the fine SC's pedestrian counts only at this speed (m/s) or faster (MOVING_MPS,
     the config's, when None; ModelConfig.fine_speed).
+    fine_caution: m/s (0: off); with hazard_brake, the fine SC's pedestrian leaves the merge and
+    brakes by `caution_brake` (times hazard_brake): stopped for within CAUTION_STOP_M, farther
+    only slowed to this speed by where it reads her. Trained on look-ahead targets, it saw 3 to 5
+    of 7 pedestrians walking into the path 0.5-1 s before, and one on 12 % of the moving frames
+    with none coming (`bid probe`, docs/experiments.md): stopping for those cost crowded traffic.
     """
 
     uses_camera = True
@@ -321,7 +345,7 @@ class BIDAgent:
                  light_short: float | None = None, move_off_green: float | None = None,
                  green_far: float | None = None, light_hold: bool = False, vehicle_hold: float = 0.0,
                  sc_logit: float | None = None, fine_logit: float | None = None,
-                 fine_speed: float | None = None):
+                 fine_speed: float | None = None, fine_caution: float = 0.0):
         torch.set_num_threads(threads)
         self.model, self.config = load_model(checkpoint)
         for name, value in (("sc_still", sc_still), ("sc_still_moving", sc_still_moving)):
@@ -344,6 +368,15 @@ class BIDAgent:
         if fine_speed is not None and not (self.config.model.sc_fine and self.config.model.fine_moving):
             raise BidError(f"fine_speed is where the fine SC starts to count while moving; {checkpoint} has no fine SC "
                            "read while moving: add one with bid graft --fine-sc, or drop it")
+        if fine_caution:
+            if not 0 < fine_caution < 100:
+                raise BidError(f"fine_caution is a speed in m/s, 0 (off) or more; got {fine_caution}")
+            if not (self.config.model.sc_fine and self.config.model.fine_moving):
+                raise BidError(f"fine_caution slows for the fine SC's pedestrians; {checkpoint} has no fine SC read "
+                               "while moving: add one with bid graft --fine-sc, or drop it")
+            if not hazard_brake:
+                raise BidError("fine_caution is read by the pedestrian brake; add hazard_brake, or drop it")
+        self.fine_caution = fine_caution
         # How SC reads (config's READ_FIELDS), set on the loaded model's config.
         reads = {**logits, **({"sc_still": True} if sc_still else {}),
                  **({"fine_speed": float(fine_speed)} if fine_speed is not None else {})}
@@ -534,8 +567,10 @@ class BIDAgent:
         # or the vehicle's for both the brakes and move-off
         second = self.vehicle_second_head or (self.move_off_steps > 0 and self.config.model.move_off_head
                                               and (self.move_off_light or not self.move_off_sc))
+        caution = by_hazard and self.fine_caution > 0  # the fine SC's pedestrian read apart
+        apart = self.move_off_sc or caution
         out = self.model(frame, prev, cmd, speed, forecast=by_forecast, hazard=by_hazard,
-                         hazard_apart=self.move_off_sc, move_off=second)
+                         hazard_apart=apart, move_off=second)
         control, *extra = out if isinstance(out, tuple) else (out,)
         accel, v = float(control[0, 1]), float(obs.speed_mps)
         self.head_accel = accel
@@ -548,7 +583,8 @@ class BIDAgent:
                 accel = min(accel, -self.forecast_brake * need)
         if by_hazard:
             hazard = extra.pop(0)
-            merged = (lambda h: self.model.merge_hazard(h, speed)) if self.move_off_sc else (lambda h: h)
+            merged = (lambda h: self.model.merge_hazard(h, speed, fine=not caution)) if apart else (lambda h: h)
+            fine = float(self.model.fine_near(hazard, speed)[0]) if caution else 0.0
             near = clear_near = tuple(float(x) for x in merged(hazard)[0])
             k = len(PATH_KINDS)
             if second:
@@ -578,7 +614,8 @@ class BIDAgent:
             need = max(self.hazard_brake * pedestrian_brake(near[0], v, self.pedestrian_hold_m),
                        self.vehicle_brake * vehicle_brake(near[1], v, self.vehicle_hold_m),
                        self.light_brake * light_brake(near[2], v, self.light_short_m) if self.light_brake > 0 else 0.0,
-                       self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0)
+                       self.crossing_brake * crossing_brake(near[3], v) if self.crossing_brake > 0 else 0.0,
+                       self.hazard_brake * caution_brake(fine, v, self.fine_caution) if caution else 0.0)
             if self.light_hold and v < START_MPS and near[2] >= CLEAR_READ and not self._moving_off:
                 need = 1.0
             if need > 0:

@@ -421,28 +421,35 @@ class BID(nn.Module):
             sc = torch.where(sc[:, k:] > at, sc[:, :k], torch.zeros_like(sc[:, :k]))
         return sc
 
-    def merge_hazard(self, apart: torch.Tensor, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+    def merge_hazard(self, apart: torch.Tensor, speed_mps: torch.Tensor | None = None,
+                     fine: bool = True) -> torch.Tensor:
         """forward_hazard(apart=True)'s columns (a model with SC) as forward_hazard gives them: the
         pedestrian's and the vehicle's nearness the larger of the head's and SC's (sc_near), with
         config.sc_fine the pedestrian's also of the fine SC's (with config.fine_moving only where
         `speed_mps`, (batch,), is config.fine_speed or more), then the head's others, then the crossing
         map's; the head's pedestrian with config.head_presence only where it says she is in the
-        path (gate_head)."""
+        path (gate_head). `fine` False leaves the fine SC out (fine_near reads it apart)."""
         k, n = len(PATH_KINDS), self.head_columns()
         crossing = apart[:, n + self.sc_columns(apart).shape[1] + self.sc_columns(apart, fine=True).shape[1]:]
         head = self.gate_head(apart[:, :n])
         near = torch.maximum(head[:, :k], self.sc_near(apart))
-        if self.config.sc_fine:
+        if self.config.sc_fine and fine:
             at = PATH_KINDS.index("pedestrian")
-            fine = self.sc_near(apart, fine=True)[:, at]
-            if self.config.fine_moving:
-                if speed_mps is None:
-                    raise BidError("this model reads its fine SC only while the ego moves: pass speed_mps")
-                moving = speed_mps.reshape(-1).to(fine.device) >= self.config.fine_speed
-                fine = torch.where(moving, fine, torch.zeros_like(fine))
             near = near.clone()
-            near[:, at] = torch.maximum(near[:, at], fine)
+            near[:, at] = torch.maximum(near[:, at], self.fine_near(apart, speed_mps))
         return torch.cat([near, head[:, k:], crossing], dim=1)
+
+    def fine_near(self, apart: torch.Tensor, speed_mps: torch.Tensor | None = None) -> torch.Tensor:
+        """(batch,): the fine SC's pedestrian nearness out of forward_hazard(apart=True)'s columns
+        (config.sc_fine), gated by its logit (sc_near) and, with config.fine_moving, 0 where
+        `speed_mps` (batch,) is below config.fine_speed: what merge_hazard merges."""
+        fine = self.sc_near(apart, fine=True)[:, PATH_KINDS.index("pedestrian")]
+        if self.config.fine_moving:
+            if speed_mps is None:
+                raise BidError("this model reads its fine SC only while the ego moves: pass speed_mps")
+            moving = speed_mps.reshape(-1).to(fine.device) >= self.config.fine_speed
+            fine = torch.where(moving, fine, torch.zeros_like(fine))
+        return fine
 
     def forward(self, frame_t: torch.Tensor, frame_prev: torch.Tensor,
                 command_onehot: torch.Tensor, speed_mps: torch.Tensor | None = None,

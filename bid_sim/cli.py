@@ -143,7 +143,7 @@ def _drive_options(args: argparse.Namespace, misplaced: str | None) -> dict | No
              "light_short": args.light_short, "move_off_green": args.move_off_green,
              "green_far": args.green_far, "light_hold": args.light_hold,
              "vehicle_hold": args.vehicle_hold, "sc_logit": args.sc_logit, "fine_logit": args.fine_logit,
-             "fine_speed": args.fine_speed}
+             "fine_speed": args.fine_speed, "fine_caution": args.fine_caution}
     for key, value in given.items():
         if value is not None and misplaced is not None:
             raise BidError(f"--{key.replace('_', '-')} {misplaced}")
@@ -322,6 +322,10 @@ def _add_drive_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fine-speed", type=float, default=None, metavar="MPS",
                    help="--agent bid with a grafted fine SC read while moving: its pedestrian counts only at MPS "
                         "(0 to 15) or faster (default 0.3) (bid_model/agent.py)")
+    g.add_argument("--fine-caution", type=float, default=None, metavar="MPS",
+                   help="--agent bid with --hazard-brake and a grafted fine SC read while moving: its pedestrian "
+                        "leaves the merge; read within 5 m it is stopped for, farther only slowed for, to MPS by "
+                        "where it is read (bid_model/agent.py)")
 
 
 def build_parser() -> argparse.ArgumentParser:

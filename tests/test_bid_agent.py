@@ -1011,15 +1011,18 @@ def test_light_still_reads_the_red_light_from_frame_t_alone_below_start_speed(tm
 def test_a_grafted_fine_sc_brakes_for_its_pedestrian_only_while_moving(tmp_path, capsys):
     """`bid graft` of the shipped checkpoint with a second SC at 2× (sp40b's kind): the agent
     prepares frames twice as fine, and the pedestrian brake reads the fine SC's pedestrian while
-    the ego moves (0.3 m/s or faster), not while it stands; its vehicle is not read."""
+    the ego moves (0.3 m/s or faster), not while it stands; its vehicle is not read. Then the
+    drive options that read it: --fine-logit, --fine-speed, --fine-caution."""
     import numpy as np
     import torch
 
-    from bid_model.agent import pedestrian_brake
+    from bid_model.agent import CAUTION_STOP_M, caution_brake, pedestrian_brake
     from bid_model.checkpoint import load_checkpoint, save_checkpoint
     from bid_model.config import RunConfig
+    from bid_model.hazards import HAZARD_AHEAD_M
     from bid_model.model import BID
     from bid_sim.agents import Observation
+    from bid_sim.ego import EgoParams
 
     shipped = Path(__file__).resolve().parents[1] / "checkpoints" / "bid_small.pt"
     donor = load_checkpoint(shipped)  # the shipped network with a fresh SC at 2×, with presence
@@ -1077,3 +1080,32 @@ def test_a_grafted_fine_sc_brakes_for_its_pedestrian_only_while_moving(tmp_path,
                                          (tmp_path / "g.pt", 16.0, "from 0 to 15 m/s")):
         with pytest.raises(BidError, match=says):
             BIDAgent(checkpoint, fine_speed=fine_speed)
+
+    # `bid evaluate --fine-caution MPS`: the fine SC's pedestrian leaves the merge; read within
+    # CAUTION_STOP_M she is stopped for as before, farther the ego is only slowed to MPS by where
+    # she is read (caution_brake), and not at all at MPS or slower.
+    far = 1.0 - 17.5 / HAZARD_AHEAD_M  # 0.3
+    assert caution_brake(far, 6.0, 3.0) == pytest.approx((36.0 - 9.0) / (2 * 15.5) / EgoParams.max_brake_mps2)
+    assert caution_brake(far, 6.0, 3.0) < pedestrian_brake(far, 6.0)  # slowed for, not stopped for
+    assert caution_brake(far, 3.0, 3.0) == 0.0 and caution_brake(0.1, 9.0, 3.0) == 0.0  # unseen below 0.2
+    near = 1.0 - 4.0 / HAZARD_AHEAD_M
+    assert CAUTION_STOP_M >= 4.0 and caution_brake(near, 2.0, 3.0) == pytest.approx(pedestrian_brake(near, 2.0, 0.0))
+    assert caution_brake(near, 0.0, 3.0) == 0.0  # it does not hold a standing ego (the fine SC is not read then)
+    for fine_at, speed, brake in ((far, 6.0, caution_brake(far, 6.0, 3.0)), (far, 2.5, 0.0),
+                                  (0.9, 6.0, pedestrian_brake(0.9, 6.0)), (0.9, 0.0, 0.0)):
+        careful = BIDAgent(tmp_path / "g.pt", hazard_brake=1.0, fine_caution=3.0)
+        careful.model.load_state_dict(agent.model.state_dict())
+        with torch.no_grad():
+            careful.model.hazard_sc_fine.priority[-1].bias[0] = fine_at
+        careful.reset(None)
+        accel = careful.act(Observation(frame, frame, 4, speed, None)).accel
+        assert accel == (pytest.approx(-brake, abs=1e-5) if brake > 0 else pytest.approx(1.0)), (fine_at, speed)
+        assert careful.near[0] == 0.0  # the merge the other brakes read holds no fine SC
+    for checkpoint, options, says in ((shipped, {"hazard_brake": 1.0}, "no fine SC read while moving"),
+                                      (tmp_path / "g.pt", {}, "add hazard_brake"),
+                                      (tmp_path / "g.pt", {"hazard_brake": 1.0, "fine_caution": -1.0}, "0 \\(off\\)")):
+        with pytest.raises(BidError, match=says):
+            BIDAgent(checkpoint, **{"fine_caution": 3.0, **options})
+    args = build_parser().parse_args(["evaluate", "--agent", "bid", "--fine-caution", "3"])
+    assert _drive_options(args, None) == {"fine_caution": 3.0}
+    assert _drive_options(build_parser().parse_args(["evaluate", "--fine-caution", "0"]), None) is None
